@@ -1,0 +1,121 @@
+"""YAML presets turned into frozen dataclasses; unknown keys are errors.
+
+Descriptor presets live in ``configs/descriptors/<name>.yaml`` (shipped inside
+the package, and linked from the repository root as ``configs/``)::
+
+    presets:
+      paper: {key: value, ...}
+      reference: {key: value, ...}
+    sensors:            # optional per-sensor overrides on top of a preset
+      vlp16:
+        paper: {key: value}
+
+Defaults are the dataclass defaults; a preset only lists what it changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+from lidar_iris_eval.errors import LirisError
+
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+
+P = TypeVar("P")
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping, reporting a missing or malformed file as a LirisError."""
+    path = Path(path)
+    if not path.is_file():
+        raise LirisError(path, "config file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise LirisError(path, f"not valid YAML ({str(err).splitlines()[0]})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise LirisError(path, "expected a mapping at the top level")
+    return data
+
+
+def make_params(params_type: type[P], values: dict[str, Any], source: str) -> P:
+    """Build a frozen params dataclass from ``values``, rejecting unknown keys.
+
+    Values are converted to the type of the field's default (so YAML ``4`` works
+    for a float field, and lists become tuples), keeping params hashable.
+    """
+    fields = {f.name: f for f in dataclasses.fields(params_type)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise LirisError(
+            source, f"unknown config key(s) {', '.join(unknown)}; valid: {', '.join(sorted(fields))}"
+        )
+    converted = {}
+    for key, value in values.items():
+        default = fields[key].default
+        try:
+            converted[key] = _coerce(value, default)
+        except (TypeError, ValueError):
+            raise LirisError(source, f"bad value {value!r} for config key {key!r}") from None
+    return params_type(**converted)
+
+
+def _coerce(value: Any, default: Any) -> Any:
+    if default is dataclasses.MISSING or default is None or value is None:
+        return tuple(value) if isinstance(value, list) else value
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise TypeError
+        return value
+    if isinstance(default, (int, float, str)):
+        if isinstance(value, bool):
+            raise TypeError
+        return type(default)(value)
+    if isinstance(default, tuple):
+        return tuple(value)
+    return value
+
+
+def params_dict(params: Any) -> dict[str, Any]:
+    """A plain, JSON-serialisable dict of a params dataclass."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(params).items()}
+
+
+def params_hash(params: Any) -> str:
+    """A short stable hash of a params dataclass, for cache keys."""
+    text = json.dumps(params_dict(params), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def descriptor_preset_values(
+    name: str, preset: str | None, sensor: str | None = None
+) -> tuple[str, dict[str, Any]]:
+    """Values of a descriptor's preset (plus sensor overrides) from its YAML file.
+
+    Returns ``(preset_name, values)``. ``preset=None`` picks the file's first preset.
+    """
+    path = CONFIG_DIR / "descriptors" / f"{name}.yaml"
+    if not path.is_file():
+        return preset or "default", {}
+    data = load_yaml(path)
+    presets = data.get("presets") or {}
+    if preset is None:
+        preset = next(iter(presets), "default")
+    if preset not in presets:
+        raise LirisError(
+            f"--preset {preset}", f"unknown preset for {name}; choose from {', '.join(presets)}"
+        )
+    values = dict(presets[preset] or {})
+    if sensor:
+        sensors = data.get("sensors") or {}
+        overrides = (sensors.get(sensor) or {}).get(preset) or {}
+        values.update(overrides)
+    return preset, values

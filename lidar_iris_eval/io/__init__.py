@@ -1,0 +1,1 @@
+"""Sequence readers: one small module per on-disk format."""
