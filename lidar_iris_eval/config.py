@@ -56,7 +56,8 @@ def make_params(params_type: type[P], values: dict[str, Any], source: str) -> P:
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise LirisError(
-            source, f"unknown config key(s) {', '.join(unknown)}; valid: {', '.join(sorted(fields))}"
+            source,
+            f"unknown config key(s) {', '.join(unknown)}; valid: {', '.join(sorted(fields))}",
         )
     converted = {}
     for key, value in values.items():
@@ -86,7 +87,8 @@ def _coerce(value: Any, default: Any) -> Any:
 
 def params_dict(params: Any) -> dict[str, Any]:
     """A plain, JSON-serialisable dict of a params dataclass."""
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(params).items()}
+    values = dataclasses.asdict(params)
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
 
 
 def params_hash(params: Any) -> str:

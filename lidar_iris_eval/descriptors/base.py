@@ -62,7 +62,7 @@ class Descriptor(abc.ABC):
         out = [self.distance(query, database[j]) for j in range(len(database))]
         if not out:
             return np.empty(0), np.empty(0)
-        dists, yaws = zip(*out)
+        dists, yaws = zip(*out, strict=True)
         return np.asarray(dists, dtype=np.float64), np.asarray(yaws, dtype=np.float64)
 
     def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,78 @@
+"""``liris gt``: ground-truth counts from poses alone."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+from tqdm import tqdm
+
+from lidar_iris_eval.cli.options import ground_truth_options, parse_exclude
+from lidar_iris_eval.cli.output import echo_json, echo_table
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
+
+
+@click.command("gt")
+@click.argument("sequence", required=False, type=click.Path(path_type=Path))
+@click.option("--poses", "poses_path", type=click.Path(path_type=Path),
+              help="Pose file (KITTI 3x4 or TUM); enough on its own, no scans needed.")
+@click.option("--calib", "calib_path", type=click.Path(path_type=Path),
+              help="KITTI calib.txt with Tr, for LiDAR-frame distances from camera poses.")
+@ground_truth_options
+@click.option("--check-scans", is_flag=True,
+              help="Also read every scan of SEQUENCE and report point counts (slow on KITTI).")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_frame, check_scans,
+            as_json):
+    """Count positive pairs and revisit queries of SEQUENCE (or of --poses).
+
+    Pairs are ordered pairs (i, j), i != j, positive when closer than --radius;
+    a revisit query has a positive partner at least --exclude frames earlier.
+    """
+    exclude_frames, exclude_name = parse_exclude(exclude)
+    positions, source, seq = _positions(sequence, poses_path, calib_path, pose_frame)
+    gt = compute_ground_truth(positions, radius, exclude_frames, distance, pose_frame)
+    summary = {"source": str(source), **gt.summary(), "exclude_preset": exclude_name}
+    if check_scans:
+        if seq is None:
+            raise LirisError("--check-scans", "needs a SEQUENCE folder, not only --poses")
+        summary.update(_scan_statistics(seq))
+    if as_json:
+        echo_json(summary)
+    else:
+        echo_table([summary])
+
+
+def _positions(sequence, poses_path, calib_path, pose_frame):
+    """Translations in the requested frame, from a sequence or a bare pose file."""
+    if sequence is None and poses_path is None:
+        raise LirisError("liris gt", "give a SEQUENCE folder or --poses FILE")
+    if sequence is not None:
+        from lidar_iris_eval.io import open_sequence
+
+        seq = open_sequence(sequence, poses=poses_path, calib=calib_path)
+        return seq.positions(pose_frame), sequence, seq
+    _, poses = read_pose_file(poses_path)
+    if pose_frame == "lidar":
+        if calib_path is None:
+            raise LirisError("--pose-frame lidar", "needs --calib to convert camera poses")
+        poses = camera_to_lidar(poses, read_calib(calib_path))
+    return poses[:, :3, 3], poses_path, None
+
+
+def _scan_statistics(seq) -> dict:
+    """Read every scan (so bad files surface now) and summarise point counts."""
+    counts = np.array(
+        [len(seq[i]) for i in tqdm(range(len(seq)), desc="reading scans", unit="scan",
+                                   file=sys.stderr, disable=None)]
+    )
+    return {
+        "scans_read": int(len(counts)),
+        "points_min": int(counts.min()),
+        "points_median": int(np.median(counts)),
+        "points_max": int(counts.max()),
+    }

@@ -1,0 +1,86 @@
+"""The KITTI odometry layout.
+
+::
+
+    dataset/
+      sequences/00/velodyne/000000.bin ...   scans
+      sequences/00/calib.txt                 Tr (Velodyne -> camera)
+      sequences/00/times.txt                 seconds, one per scan (optional)
+      sequences/00/poses.txt                 camera poses (or:)
+      poses/00.txt                           camera poses beside sequences/
+
+Simulator output (``liris simulate``) uses the same layout with ``poses.txt``
+inside the sequence folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_kitti_poses
+from lidar_iris_eval.io.sequence import Sequence, check_counts, list_scans
+
+
+def is_kitti_layout(path: Path) -> bool:
+    """True for a folder with a ``velodyne/`` subfolder (or the velodyne folder itself)."""
+    return (path / "velodyne").is_dir() or (path.name == "velodyne" and path.is_dir())
+
+
+def find_kitti_poses(seq_dir: Path) -> Path | None:
+    """``poses.txt`` in the sequence folder, else ``../../poses/<name>.txt``."""
+    local = seq_dir / "poses.txt"
+    if local.is_file():
+        return local
+    beside = seq_dir.parent.parent / "poses" / f"{seq_dir.name}.txt"
+    return beside if beside.is_file() else None
+
+
+def open_kitti(
+    path: str | Path, poses: str | Path | None = None, calib: str | Path | None = None
+) -> Sequence:
+    """Open a KITTI-layout sequence lazily; poses are converted to the LiDAR frame.
+
+    ``poses`` and ``calib`` override the files found in the layout.
+    """
+    seq_dir = Path(path)
+    if seq_dir.name == "velodyne":
+        seq_dir = seq_dir.parent
+    scan_paths = list_scans(seq_dir / "velodyne")
+    pose_path = Path(poses) if poses is not None else find_kitti_poses(seq_dir)
+    if pose_path is None:
+        raise LirisError(
+            seq_dir, f"no poses: expected {seq_dir / 'poses.txt'} or ../../poses/{seq_dir.name}.txt"
+        )
+    camera_poses = read_kitti_poses(pose_path)
+    check_counts(len(scan_paths), len(camera_poses), seq_dir / "velodyne", pose_path)
+    calib_path = Path(calib) if calib is not None else seq_dir / "calib.txt"
+    if not calib_path.is_file():
+        raise LirisError(calib_path, "calibration file not found (needed for LiDAR-frame poses)")
+    tr = read_calib(calib_path)
+    times = None
+    times_path = seq_dir / "times.txt"
+    if times_path.is_file():
+        times = _read_times(times_path)
+        check_counts(len(scan_paths), len(times), seq_dir / "velodyne", times_path)
+    return Sequence(
+        name=seq_dir.name,
+        path=seq_dir,
+        scan_paths=scan_paths,
+        poses=camera_to_lidar(camera_poses, tr),
+        camera_poses=camera_poses,
+        times=times,
+        calib=tr,
+    )
+
+
+def _read_times(path: Path) -> np.ndarray:
+    try:
+        times = np.loadtxt(path, dtype=np.float64, ndmin=1)
+    except ValueError:
+        raise LirisError(path, "malformed times file (one number per line expected)") from None
+    if times.ndim != 1:
+        raise LirisError(path, "malformed times file (one number per line expected)")
+    return times

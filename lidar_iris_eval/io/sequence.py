@@ -1,0 +1,137 @@
+"""The :class:`Sequence`: lazily loaded scans with LiDAR-frame poses.
+
+Opening a sequence only lists file names and parses the (small) pose file, so
+a 4541-scan KITTI sequence opens instantly; a scan is read when indexed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+from collections.abc import Callable, Iterator
+from collections.abc import Sequence as SequenceABC
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.io.scans import Scan, read_kitti_bin, read_npy
+
+#: file suffix -> reader (a callable, or "module:function" imported on first use)
+SCAN_READERS: dict[str, Callable[[Path], Scan] | str] = {
+    ".bin": read_kitti_bin,
+    ".npy": read_npy,
+    ".pcd": "lidar_iris_eval.io.pcd:read_pcd",
+}
+
+FINGERPRINT_SAMPLE_BYTES = 4096
+
+
+def scan_reader(suffix: str) -> Callable[[Path], Scan]:
+    """The reader function for a scan file suffix such as ``.bin``."""
+    reader = SCAN_READERS.get(suffix.lower())
+    if reader is None:
+        raise LirisError(suffix, f"unsupported scan format; supported: {', '.join(SCAN_READERS)}")
+    if isinstance(reader, str):
+        module_name, func_name = reader.split(":")
+        reader = getattr(importlib.import_module(module_name), func_name)
+    return reader
+
+
+@dataclass
+class Sequence(SequenceABC):
+    """Scans on disk plus one pose per scan.
+
+    Attributes
+    ----------
+    name : short label used in output (e.g. ``"00"``).
+    path : the folder the sequence was opened from.
+    scan_paths : one file per scan, in frame order.
+    poses : ``(N, 4, 4)`` LiDAR-frame poses.
+    camera_poses : ``(N, 4, 4)`` camera-frame poses as given by KITTI, or None.
+    times : ``(N,)`` seconds, or None.
+    calib : the 4×4 ``Tr`` (Velodyne → camera), or None.
+    frame_ids : integer id of each scan (from its file name when numeric).
+    """
+
+    name: str
+    path: Path
+    scan_paths: list[Path]
+    poses: np.ndarray
+    camera_poses: np.ndarray | None = None
+    times: np.ndarray | None = None
+    calib: np.ndarray | None = None
+    frame_ids: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.frame_ids is None:
+            self.frame_ids = np.array([_frame_id(p, i) for i, p in enumerate(self.scan_paths)])
+
+    def __len__(self) -> int:
+        return len(self.scan_paths)
+
+    def __getitem__(self, index: int) -> np.ndarray:  # type: ignore[override]
+        """Points ``(N, 3)`` float32 of scan ``index``."""
+        return self.scan(index).points
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def scan(self, index: int) -> Scan:
+        """Points and intensity of scan ``index``."""
+        path = self.scan_paths[index]
+        return scan_reader(path.suffix)(path)
+
+    def positions(self, frame: str = "lidar") -> np.ndarray:
+        """``(N, 3)`` translations of the LiDAR or camera poses."""
+        if frame == "lidar":
+            return self.poses[:, :3, 3].copy()
+        if frame == "camera":
+            if self.camera_poses is None:
+                return self.poses[:, :3, 3].copy()
+            return self.camera_poses[:, :3, 3].copy()
+        raise LirisError(f"--pose-frame {frame}", "unknown pose frame; choose lidar or camera")
+
+    def fingerprint(self) -> str:
+        """A content fingerprint of the scans, for cache keys.
+
+        Hashes each file's name, size and its first and last 4 KiB: cheap for
+        thousands of scans, and unlike modification times it survives copying.
+        """
+        digest = hashlib.sha256()
+        for path in self.scan_paths:
+            size = path.stat().st_size
+            digest.update(f"{path.name}:{size};".encode())
+            with open(path, "rb") as handle:
+                digest.update(handle.read(FINGERPRINT_SAMPLE_BYTES))
+                if size > 2 * FINGERPRINT_SAMPLE_BYTES:
+                    handle.seek(size - FINGERPRINT_SAMPLE_BYTES)
+                    digest.update(handle.read())
+        return digest.hexdigest()[:16]
+
+
+def _frame_id(path: Path, default: int) -> int:
+    return int(path.stem) if path.stem.isdigit() else default
+
+
+def check_counts(n_scans: int, n_poses: int, scans_dir: Path, pose_path: Path) -> None:
+    """Scan and pose counts must match; say which files disagree."""
+    if n_scans != n_poses:
+        raise LirisError(
+            pose_path, f"{n_poses} poses but {n_scans} scans in {scans_dir}; counts must be equal"
+        )
+
+
+def list_scans(folder: Path) -> list[Path]:
+    """Scan files in ``folder`` with a supported suffix, in natural (numeric) order."""
+    if not folder.is_dir():
+        raise LirisError(folder, "scan folder not found")
+    files = [p for p in folder.iterdir() if p.suffix.lower() in SCAN_READERS and p.is_file()]
+    suffixes = {p.suffix.lower() for p in files}
+    if len(suffixes) > 1:
+        raise LirisError(folder, f"mixed scan formats {sorted(suffixes)}; keep one per folder")
+    if not files:
+        raise LirisError(folder, f"no scan files ({', '.join(SCAN_READERS)})")
+    return sorted(files, key=lambda p: (int(p.stem) if p.stem.isdigit() else float("inf"), p.name))

@@ -1,0 +1,35 @@
+"""Shared fixtures: the optional ../shared folder and tiny on-disk sequences."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+KITTI = SHARED / "data" / "kitti"
+
+
+@pytest.fixture
+def kitti_dir() -> Path:
+    """The real KITTI material in ../shared, or skip."""
+    if not KITTI.is_dir():
+        pytest.skip("../shared/data/kitti is not available")
+    return KITTI
+
+
+def write_kitti_sequence(
+    root: Path, scans: list[np.ndarray], poses: np.ndarray, tr: np.ndarray | None = None
+) -> Path:
+    """Write scans (N×4 float32) and camera poses in KITTI layout under ``root``."""
+    velodyne = root / "velodyne"
+    velodyne.mkdir(parents=True)
+    for i, scan in enumerate(scans):
+        np.asarray(scan, dtype=np.float32).tofile(velodyne / f"{i:06d}.bin")
+    rows = poses[:, :3, :4].reshape(len(poses), 12)
+    np.savetxt(root / "poses.txt", rows, fmt="%.9e")
+    tr = np.eye(4) if tr is None else tr
+    (root / "calib.txt").write_text("Tr: " + " ".join(f"{v:.12e}" for v in tr[:3].ravel()) + "\n")
+    np.savetxt(root / "times.txt", np.arange(len(scans)) * 0.1, fmt="%.6f")
+    return root
