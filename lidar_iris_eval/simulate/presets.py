@@ -1,0 +1,90 @@
+"""Named built-in sequences and the settings every simulation is made from.
+
+A preset is a partial :class:`SimConfig`; options given by the caller override
+its values. The ``tiny-*`` presets (about 200 frames, reduced azimuth
+resolution) are for tests and CI, ``small-mixed`` is the CI regression
+sequence (both same- and reverse-direction revisits), ``kitti-scale`` matches
+KITTI 00's 4541 frames for benchmarks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.simulate.sensors import SENSORS
+from lidar_iris_eval.simulate.trajectories import ROUTES
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything that determines a simulated sequence (with the package version)."""
+
+    frames: int | None = 200  # None with a trajectory: all of its poses
+    sensor: str = "hdl64"
+    route: str = "mixed"
+    azimuth_steps: int | None = None  # None: the sensor's full resolution
+    seed: int = 0
+    moving_cars: bool = True
+    n_moving_cars: int = 6
+    blocks: tuple[int, int] = (1, 1)  # route rectangle, in street blocks
+    block_size: tuple[float, float] = (26.0, 34.0)  # metres, min/max
+    lateral_max: float = 1.5  # lane offset range right of the centre line
+    trajectory: str | None = None  # KITTI pose file (camera frame) to follow
+    calib: str | None = None  # calib.txt with the Tr that goes with it
+
+
+PRESETS: dict[str, dict] = {
+    "tiny-same": dict(frames=200, route="same", azimuth_steps=512, seed=11,
+                      block_size=(18.0, 24.0)),
+    "tiny-reverse": dict(frames=200, route="reverse", azimuth_steps=512, seed=12,
+                         block_size=(18.0, 24.0)),
+    "tiny-mixed": dict(frames=220, route="mixed", azimuth_steps=512, seed=13,
+                       block_size=(18.0, 24.0)),
+    "small-mixed": dict(frames=400, route="mixed", azimuth_steps=720, seed=21,
+                        block_size=(36.0, 46.0)),
+    "kitti-scale": dict(frames=4541, route="mixed", azimuth_steps=1024, seed=31,
+                        blocks=(7, 5), block_size=(55.0, 100.0)),
+}
+
+
+def resolve_config(preset: str | None, overrides: dict) -> SimConfig:
+    """The preset's values with ``overrides`` (``None`` values are ignored) on top."""
+    if preset is not None and preset not in PRESETS:
+        raise LirisError("--preset", f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    values = dict(PRESETS.get(preset, {}) if preset else {})
+    fields = {f.name for f in dataclasses.fields(SimConfig)}
+    for key, value in overrides.items():
+        if key not in fields:
+            raise LirisError(None, f"unknown simulation option {key!r}")
+        if value is not None:
+            values[key] = value
+    if values.get("trajectory") is not None and overrides.get("frames") is None:
+        values["frames"] = None  # follow the whole trajectory file
+    for key in ("blocks", "block_size"):
+        if key in values:
+            values[key] = tuple(values[key])
+    cfg = SimConfig(**values)
+    _check(cfg)
+    return cfg
+
+
+def _check(cfg: SimConfig) -> None:
+    if cfg.frames is None and cfg.trajectory is None:
+        raise LirisError("--frames", "is required without --trajectory")
+    if cfg.frames is not None and cfg.frames < 1:
+        raise LirisError("--frames", f"must be positive, got {cfg.frames}")
+    if cfg.sensor not in SENSORS:
+        raise LirisError("--sensor", f"unknown sensor {cfg.sensor!r}; choose from "
+                         f"{', '.join(SENSORS)}")
+    if cfg.route not in ROUTES:
+        raise LirisError("--route", f"unknown route {cfg.route!r}; choose from {', '.join(ROUTES)}")
+    if cfg.azimuth_steps is not None and cfg.azimuth_steps < 8:
+        raise LirisError("--azimuth-steps", f"must be at least 8, got {cfg.azimuth_steps}")
+    if min(cfg.blocks) < 1 or cfg.block_size[0] < 15 or cfg.block_size[1] < cfg.block_size[0]:
+        raise LirisError(None, "blocks must be >= 1 and block sizes at least 15 m (min <= max)")
+    if not 0 <= cfg.lateral_max <= 3:
+        raise LirisError(None, f"lateral_max must be within 0..3 m, got {cfg.lateral_max}")
+    if cfg.calib is not None and cfg.trajectory is None:
+        raise LirisError("--calib", "only used together with --trajectory")

@@ -1,0 +1,133 @@
+"""Writing a simulated sequence in the KITTI odometry layout.
+
+``velodyne/NNNNNN.bin`` (float32 x y z intensity), ``labels/NNNNNN.label``
+(SemanticKITTI uint32: class | instance << 16), ``poses.txt`` (camera frame,
+first pose identity), ``times.txt``, ``calib.txt`` (``P0:``..``P3:`` and
+``Tr:``) and ``manifest.json``. Every file is written to a temporary name in
+the same folder and moved into place with :func:`os.replace`, so an
+interrupted run never leaves a half-written file under a final name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from lidar_iris_eval.errors import LirisError
+
+
+def default_tr() -> np.ndarray:
+    """A KITTI-like LiDAR-to-camera transform (4x4).
+
+    Camera axes are x right, y down, z forward; the LiDAR's are x forward,
+    y left, z up. A small misalignment (a few tenths of a degree) and a lever
+    arm of about 0.3 m make it non-trivial, like KITTI's, so readers must apply
+    ``T_lidar = inv(Tr) T_cam Tr`` to recover the LiDAR trajectory.
+    """
+    axes = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    ax, ay, az = np.deg2rad([0.35, -0.25, 0.45])
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
+    tr = np.eye(4)
+    tr[:3, :3] = rx @ ry @ rz @ axes
+    tr[:3, 3] = [0.03, -0.07, -0.28]
+    return tr
+
+
+def read_tr(path: str | os.PathLike) -> np.ndarray:
+    """The ``Tr:`` (or ``Tr_velo_to_cam:``) line of a KITTI calib file as 4x4."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise LirisError(path, f"cannot read calib ({err.strerror})") from None
+    for line in text.splitlines():
+        key, _, rest = line.partition(":")
+        if key.strip() in ("Tr", "Tr_velo_to_cam"):
+            try:
+                vals = np.array([float(v) for v in rest.split()])
+            except ValueError:
+                raise LirisError(path, f"bad number in {key.strip()} line") from None
+            if len(vals) != 12:
+                raise LirisError(path, f"{key.strip()} needs 12 numbers, found {len(vals)}")
+            tr = np.eye(4)
+            tr[:3, :] = vals.reshape(3, 4)
+            return tr
+    raise LirisError(path, "no Tr: line (KITTI calib format)")
+
+
+def _fmt_row(values) -> str:
+    return " ".join(f"{v:.12e}" for v in values)
+
+
+def calib_text(tr: np.ndarray) -> str:
+    """KITTI ``calib.txt`` content: four pinhole projections and ``Tr``."""
+    f, cx, cy = 718.856, 607.1928, 185.2157
+    lines = []
+    for k, tx in enumerate((0.0, -0.537, 0.06, -0.475)):
+        p = np.array([[f, 0, cx, f * tx], [0, f, cy, 0], [0, 0, 1, 0]])
+        lines.append(f"P{k}: " + _fmt_row(p.ravel()))
+    lines.append("Tr: " + _fmt_row(tr[:3, :].ravel()))
+    return "\n".join(lines) + "\n"
+
+
+def poses_text(poses: np.ndarray) -> str:
+    """KITTI pose lines (row-major 3x4, 12 numbers each)."""
+    return "".join(" ".join(f"{v:.9e}" for v in p[:3, :].ravel()) + "\n" for p in poses)
+
+
+def times_text(n: int, dt: float = 0.1) -> str:
+    return "".join(f"{i * dt:.6e}\n" for i in range(n))
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file and :func:`os.replace`."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+    os.replace(tmp, path)
+
+
+def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """Create ``out_dir``; refuse a non-empty one unless ``overwrite``."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise LirisError(out_dir, "exists and is not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
+    (out_dir / "velodyne").mkdir(parents=True, exist_ok=True)
+    (out_dir / "labels").mkdir(parents=True, exist_ok=True)
+
+
+def remove_stale(out_dir: Path, frames: int) -> None:
+    """Delete scans and labels numbered ``frames`` or above left by an older run."""
+    for sub, ext in (("velodyne", ".bin"), ("labels", ".label")):
+        for path in (out_dir / sub).glob(f"*{ext}"):
+            stem = path.stem
+            if stem.isdigit() and int(stem) >= frames:
+                path.unlink()
+
+
+def write_scan(out_dir: Path, index: int, points: np.ndarray, intensity: np.ndarray,
+               label: np.ndarray) -> None:
+    """One scan's ``.bin`` and ``.label`` files."""
+    data = np.empty((len(points), 4), dtype="<f4")
+    data[:, :3] = points
+    data[:, 3] = intensity
+    atomic_write(out_dir / "velodyne" / f"{index:06d}.bin", data.tobytes())
+    atomic_write(out_dir / "labels" / f"{index:06d}.label", label.astype("<u4").tobytes())
+
+
+def write_metadata(out_dir: Path, lidar_poses: np.ndarray, tr: np.ndarray,
+                   manifest: dict) -> None:
+    """poses.txt (camera frame, re-based to identity), times.txt, calib.txt, manifest.json."""
+    rel = np.linalg.inv(lidar_poses[0]) @ lidar_poses
+    cam = tr @ rel @ np.linalg.inv(tr)
+    atomic_write(out_dir / "poses.txt", poses_text(cam).encode())
+    atomic_write(out_dir / "times.txt", times_text(len(lidar_poses)).encode())
+    atomic_write(out_dir / "calib.txt", calib_text(tr).encode())
+    atomic_write(out_dir / "manifest.json",
+                 (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode())
