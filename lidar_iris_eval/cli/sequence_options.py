@@ -1,0 +1,61 @@
+"""Click options for the sequence readers (scan folders and ROS bags).
+
+Add ``@sequence_options`` to a command that opens a sequence; the command then
+receives one keyword, ``reader_options``, a dict to pass on as
+``open_sequence(path, poses=..., calib=..., **reader_options)``. Only options
+the user actually gave are in it, so a KITTI layout (which takes none) still
+opens, and an option that does not fit the format is reported by the reader.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import click
+
+#: click parameter name -> open_sequence keyword
+_KEYWORDS = {
+    "pose_format": "pose_format",
+    "lidar_frame_poses": "lidar_frame",
+    "times_path": "times",
+    "topic": "topic",
+    "pose_topic": "pose_topic",
+    "every": "every",
+    "min_distance": "min_distance",
+    "tolerance": "tolerance",
+    "stamps": "stamps",
+}
+
+
+def sequence_options(func):
+    """Reader options: pose format/frame, bag topics, time matching, keyframes."""
+
+    @click.option("--pose-format", type=click.Choice(["auto", "kitti", "tum"]), default=None,
+                  help="Pose file format (default: detected from the first line).")
+    @click.option("--lidar-frame-poses", is_flag=True, default=None,
+                  help="Scan folders: the poses are LiDAR poses (no calib.txt Tr applied).")
+    @click.option("--times", "times_path", type=click.Path(),
+                  help="Scan folders: one scan time (s) per line, instead of times.txt.")
+    @click.option("--topic", help="ROS bags: the sensor_msgs/PointCloud2 topic.")
+    @click.option("--pose-topic",
+                  help="ROS bags: the nav_msgs/Odometry or geometry_msgs/PoseStamped topic.")
+    @click.option("--stamps", type=click.Choice(["header", "bag"]), default=None,
+                  help="ROS bags: time scans by header stamp (default) or recording time.")
+    @click.option("--tolerance", type=float, default=None,
+                  help="Seconds; scans with no pose this close in time are dropped [0.1].")
+    @click.option("--every", type=int, default=None, help="Keep every N-th scan.")
+    @click.option("--min-distance", type=float, default=None,
+                  help="Keep a scan only after the sensor moved this many metres.")
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        kwargs["reader_options"] = reader_options(
+            {name: kwargs.pop(name) for name in _KEYWORDS}
+        )
+        return func(*args, **kwargs)
+
+    return wrapper
+
+
+def reader_options(values: dict) -> dict:
+    """Keep the options that were given, renamed to ``open_sequence`` keywords."""
+    return {_KEYWORDS[name]: value for name, value in values.items() if value is not None}
