@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from lidar_iris_eval.cli.options import ground_truth_options, parse_exclude
 from lidar_iris_eval.cli.output import echo_json, echo_table
+from lidar_iris_eval.cli.sequence_options import sequence_options
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
@@ -23,18 +24,21 @@ from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
 @click.option("--calib", "calib_path", type=click.Path(path_type=Path),
               help="KITTI calib.txt with Tr, for LiDAR-frame distances from camera poses.")
 @ground_truth_options
+@sequence_options
 @click.option("--check-scans", is_flag=True,
               help="Also read every scan of SEQUENCE and report point counts (slow on KITTI).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_frame, check_scans,
-            as_json):
+            as_json, reader_options):
     """Count positive pairs and revisit queries of SEQUENCE (or of --poses).
 
     Pairs are ordered pairs (i, j), i != j, positive when closer than --radius;
     a revisit query has a positive partner at least --exclude frames earlier.
     """
     exclude_frames, exclude_name = parse_exclude(exclude)
-    positions, source, seq = _positions(sequence, poses_path, calib_path, pose_frame)
+    positions, source, seq, pose_frame = _positions(
+        sequence, poses_path, calib_path, pose_frame, reader_options
+    )
     gt = compute_ground_truth(positions, radius, exclude_frames, distance, pose_frame)
     summary = {"source": str(source), **gt.summary(), "exclude_preset": exclude_name}
     if check_scans:
@@ -47,21 +51,24 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
         echo_table([summary])
 
 
-def _positions(sequence, poses_path, calib_path, pose_frame):
-    """Translations in the requested frame, from a sequence or a bare pose file."""
+def _positions(sequence, poses_path, calib_path, pose_frame, reader_options):
+    """Translations, source and frame used, from a sequence or a bare pose file."""
     if sequence is None and poses_path is None:
         raise LirisError("liris gt", "give a SEQUENCE folder or --poses FILE")
     if sequence is not None:
         from lidar_iris_eval.io import open_sequence
 
-        seq = open_sequence(sequence, poses=poses_path, calib=calib_path)
-        return seq.positions(pose_frame), sequence, seq
+        seq = open_sequence(sequence, poses=poses_path, calib=calib_path, **reader_options)
+        pose_frame = seq.resolve_pose_frame(pose_frame)
+        return seq.positions(pose_frame), sequence, seq, pose_frame
+    if reader_options:
+        raise LirisError("--poses", f"reader options {sorted(reader_options)} need a SEQUENCE")
     _, poses = read_pose_file(poses_path)
     if pose_frame == "lidar":
         if calib_path is None:
             raise LirisError("--pose-frame lidar", "needs --calib to convert camera poses")
         poses = camera_to_lidar(poses, read_calib(calib_path))
-    return poses[:, :3, 3], poses_path, None
+    return poses[:, :3, 3], poses_path, None, pose_frame
 
 
 def _scan_statistics(seq) -> dict:

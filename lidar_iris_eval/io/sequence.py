@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.io.scans import Scan, read_kitti_bin, read_npy
 
 #: file suffix -> reader (a callable, or "module:function" imported on first use)
@@ -93,6 +93,18 @@ class Sequence(SequenceABC):
                 return self.poses[:, :3, 3].copy()
             return self.camera_poses[:, :3, 3].copy()
         raise LirisError(f"--pose-frame {frame}", "unknown pose frame; choose lidar or camera")
+
+    def resolve_pose_frame(self, frame: str) -> str:
+        """The pose frame to use for ground truth, given the one requested.
+
+        ``camera`` falls back to ``lidar`` (with a warning) when the sequence has
+        no camera poses, e.g. a ROS bag or a folder with LiDAR-frame poses, so
+        output never claims a convention that was not applied.
+        """
+        if frame == "camera" and self.camera_poses is None:
+            warn(self.path, "no camera poses; using LiDAR-frame poses for ground truth")
+            return "lidar"
+        return frame
 
     def fingerprint(self) -> str:
         """A content fingerprint of the scans, for cache keys.
