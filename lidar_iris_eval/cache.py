@@ -1,0 +1,209 @@
+"""A content-addressed descriptor cache: atomic writes, verified reads.
+
+One file per (sequence, descriptor, parameters): ``<root>/<seq>-<descriptor>-<key>.npz``.
+The key hashes everything that changes the stored numbers: the descriptor
+name and its full parameter set, the package version, the sequence's content
+fingerprint (:meth:`Sequence.fingerprint`) and a hash of the descriptor's
+source code (so editing a descriptor between releases never serves stale
+numbers). Anything else (the
+sequence's path, the time of day) does not matter, so a copied dataset still
+hits the cache.
+
+Files are written to a temporary name in the same folder and moved into
+place with :func:`os.replace`, so a reader sees either nothing or a complete
+file, even when the writer is killed. Each file carries a SHA-256 of its arrays
+and the key it was written for; a file that fails to load, or whose checksum
+or key does not match, is reported with a warning, deleted, and treated as
+missing, so the caller rebuilds it.
+
+Long extractions also store *chunks* (``<stem>.partial/chunk-<a>-<b>.npz``,
+same format) as they go, so an interrupted run resumes where it stopped.
+
+Default location: ``$LIRIS_CACHE_DIR`` if set, else ``./.liris-cache`` in the
+current directory (git-ignored in this repository).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import zipfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidar_iris_eval.errors import LirisError, warn
+
+CACHE_FORMAT = 1
+ENV_VAR = "LIRIS_CACHE_DIR"
+DEFAULT_DIRNAME = ".liris-cache"
+_META = "__meta__"
+
+
+def default_cache_dir() -> Path:
+    """``$LIRIS_CACHE_DIR`` if set, else ``./.liris-cache``."""
+    env = os.environ.get(ENV_VAR)
+    return Path(env) if env else Path.cwd() / DEFAULT_DIRNAME
+
+
+@dataclass(frozen=True)
+class CacheKey:
+    """What a cached array depends on; :meth:`digest` is its content address."""
+
+    sequence: str
+    fingerprint: str
+    descriptor: str
+    params: str  # canonical JSON of the parameter dict
+    version: str
+    n_scans: int
+    code: str = ""  # hash of the descriptor source code (see extract.descriptor_code_hash)
+
+    @classmethod
+    def build(
+        cls,
+        sequence: str,
+        fingerprint: str,
+        descriptor: str,
+        params: dict[str, Any],
+        version: str,
+        n_scans: int,
+        code: str = "",
+    ) -> CacheKey:
+        text = json.dumps(params, sort_keys=True, default=str)
+        return cls(sequence, fingerprint, descriptor, text, version, int(n_scans), code)
+
+    def digest(self) -> str:
+        text = json.dumps({"format": CACHE_FORMAT, **asdict(self)}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+    def stem(self) -> str:
+        safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in self.sequence) or "seq"
+        return f"{safe}-{self.descriptor}-{self.digest()}"
+
+
+def arrays_checksum(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 over the names, dtypes, shapes and bytes of ``arrays``."""
+    digest = hashlib.sha256()
+    for name in sorted(arrays):
+        arr = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name}|{arr.dtype.descr!r}|{arr.shape!r}|".encode())
+        digest.update(arr.tobytes())
+    return digest.hexdigest()
+
+
+def write_arrays(path: Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+    """Write ``arrays`` plus a checksummed JSON header to ``path`` atomically."""
+    if _META in arrays:
+        raise ValueError(f"array name {_META!r} is reserved")
+    header = {**meta, "checksum": arrays_checksum(arrays)}
+    blob = np.frombuffer(json.dumps(header, sort_keys=True).encode(), dtype=np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            np.savez(handle, **arrays, **{_META: blob})
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read and verify a file written by :func:`write_arrays`.
+
+    Raises
+    ------
+    ValueError
+        When the file is truncated, not an archive, or fails its checksum.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (zipfile.BadZipFile, OSError, EOFError, KeyError, ValueError) as err:
+        raise ValueError(f"unreadable ({type(err).__name__}: {err})") from None
+    blob = arrays.pop(_META, None)
+    if blob is None:
+        raise ValueError("no header")
+    try:
+        meta = json.loads(blob.tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise ValueError("corrupt header") from None
+    if meta.get("checksum") != arrays_checksum(arrays):
+        raise ValueError("checksum mismatch")
+    return arrays, meta
+
+
+class DescriptorCache:
+    """Cache files under ``root``; see the module docstring for the layout."""
+
+    def __init__(self, root: str | os.PathLike | None = None):
+        self.root = Path(root) if root is not None else default_cache_dir()
+        if self.root.exists() and not self.root.is_dir():
+            raise LirisError(self.root, "cache directory is a file")
+
+    def __repr__(self) -> str:
+        return f"DescriptorCache({str(self.root)!r})"
+
+    def path(self, key: CacheKey) -> Path:
+        return self.root / f"{key.stem()}.npz"
+
+    def partial_dir(self, key: CacheKey) -> Path:
+        return self.root / f"{key.stem()}.partial"
+
+    def load(self, key: CacheKey) -> dict[str, np.ndarray] | None:
+        """The arrays stored for ``key``, or None (a bad file is warned about and removed)."""
+        return self._load_verified(self.path(key), key)
+
+    def store(self, key: CacheKey, arrays: dict[str, np.ndarray]) -> Path:
+        """Store the complete arrays for ``key`` and drop its partial chunks."""
+        path = self.path(key)
+        write_arrays(path, arrays, {"key": asdict(key), "digest": key.digest()})
+        shutil.rmtree(self.partial_dir(key), ignore_errors=True)
+        return path
+
+    def store_chunk(
+        self, key: CacheKey, start: int, stop: int, arrays: dict[str, np.ndarray]
+    ) -> None:
+        """Store the arrays of scans ``[start, stop)`` as one resumable chunk."""
+        path = self.partial_dir(key) / f"chunk-{start:09d}-{stop:09d}.npz"
+        meta = {"digest": key.digest(), "start": start, "stop": stop}
+        write_arrays(path, arrays, meta)
+
+    def load_chunks(self, key: CacheKey) -> dict[tuple[int, int], dict[str, np.ndarray]]:
+        """Verified chunks stored for ``key``, by ``(start, stop)``."""
+        folder = self.partial_dir(key)
+        chunks: dict[tuple[int, int], dict[str, np.ndarray]] = {}
+        if not folder.is_dir():
+            return chunks
+        for path in sorted(folder.glob("chunk-*.npz")):
+            arrays = self._load_verified(path, key)
+            if arrays is None:
+                continue
+            try:
+                _, a, b = path.stem.split("-")
+                start, stop = int(a), int(b)
+            except ValueError:
+                continue
+            if all(len(v) == stop - start for v in arrays.values()):
+                chunks[(start, stop)] = arrays
+        return chunks
+
+    def _load_verified(self, path: Path, key: CacheKey) -> dict[str, np.ndarray] | None:
+        if not path.is_file():
+            return None
+        try:
+            arrays, meta = read_arrays(path)
+            if meta.get("digest") != key.digest():
+                raise ValueError("written for a different key")
+        except ValueError as err:
+            warn(path, f"corrupt cache file ({err}); deleting it and recomputing")
+            path.unlink(missing_ok=True)
+            return None
+        return arrays

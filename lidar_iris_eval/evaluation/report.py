@@ -1,0 +1,170 @@
+"""Writing a run directory (the format is specified in docs/results-format.md).
+
+A run is assembled in a hidden temporary folder next to the target and moved
+into place with one rename when everything is written, so a reader (or
+``liris plot``) never sees half a run, and a failed or interrupted run leaves
+the previous results untouched. An existing run is only replaced when the
+caller asks for it (``overwrite=True``).
+
+Nothing here computes metrics; it only lays out results computed elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.evaluation.metrics import PRCurve, reduce_curve
+from lidar_iris_eval.evaluation.protocol1 import Protocol1Result
+from lidar_iris_eval.evaluation.protocol2 import Protocol2Result
+
+#: the metric columns every result row carries, in ``metrics.csv`` order
+SUMMARY_KEYS = ("ap", "f1_max", "f1_threshold", "r100p", "ep")
+
+
+def check_run_dir(out: str | os.PathLike, overwrite: bool) -> Path:
+    """Refuse an existing run directory unless ``overwrite``; returns the path."""
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise LirisError(out, "results directory already exists; pass --overwrite to replace it")
+    if out.exists() and not out.is_dir():
+        raise LirisError(out, "exists and is not a directory")
+    return out
+
+
+class RunWriter:
+    """Collects the files of one run in a temporary folder; :meth:`commit` publishes it.
+
+    Use as a context manager: leaving the block normally commits, an
+    exception discards the temporary folder.
+    """
+
+    def __init__(self, out: str | os.PathLike, overwrite: bool = False):
+        self.out = check_run_dir(out, overwrite)
+        self.overwrite = overwrite
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.tmp-", dir=self.out.parent))
+
+    def __enter__(self) -> RunWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def path(self, relative: str) -> Path:
+        target = self.tmp / relative
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return target
+
+    def write_text(self, relative: str, text: str) -> None:
+        self.path(relative).write_text(text)
+
+    def write_yaml(self, relative: str, data: Any) -> None:
+        self.write_text(relative, yaml.safe_dump(json_ready(data), sort_keys=False))
+
+    def write_json(self, relative: str, data: Any) -> None:
+        self.write_text(relative, json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n")
+
+    def write_csv(self, relative: str, columns: dict[str, Any] | pd.DataFrame) -> None:
+        table = columns if isinstance(columns, pd.DataFrame) else pd.DataFrame(columns)
+        table.to_csv(self.path(relative), index=False)
+
+    def write_npy(self, relative: str, array: np.ndarray) -> None:
+        np.save(self.path(relative), np.asarray(array), allow_pickle=False)
+
+    def commit(self) -> Path:
+        """Move the finished run into place (replacing the old one if allowed)."""
+        old = None
+        if self.out.exists():
+            if not self.overwrite:
+                shutil.rmtree(self.tmp, ignore_errors=True)
+                raise LirisError(self.out, "results directory appeared while running; not replaced")
+            old = self.out.parent / f".{self.out.name}.old-{os.getpid()}"
+            os.rename(self.out, old)
+        os.rename(self.tmp, self.out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        return self.out
+
+
+def pr_table(curve: PRCurve) -> dict[str, np.ndarray]:
+    """Columns of ``pr.csv``: the loss-free reduced exact curve (see ``reduce_curve``)."""
+    reduced = reduce_curve(curve)
+    return {
+        "threshold": reduced.threshold,
+        "precision": reduced.precision,
+        "recall": reduced.recall,
+        "tp": reduced.tp,
+        "fp": reduced.fp,
+        "fn": reduced.fn,
+    }
+
+
+def write_protocol1(run: RunWriter, descriptor: str, result: Protocol1Result) -> None:
+    """``protocol1/<descriptor>/matches.csv`` and ``pr.csv``."""
+    table = result.table()
+    for key in ("is_revisit", "is_true", "is_reverse"):
+        if key in table:
+            table[key] = np.asarray(table[key]).astype(np.int8)
+    run.write_csv(f"protocol1/{descriptor}/matches.csv", table)
+    run.write_csv(f"protocol1/{descriptor}/pr.csv", pr_table(result.curve))
+
+
+def write_protocol2(run: RunWriter, descriptor: str, result: Protocol2Result) -> None:
+    """``protocol2/<descriptor>/affinity.npy`` and ``pr.csv``."""
+    run.write_npy(f"protocol2/{descriptor}/affinity.npy", result.affinity.matrix)
+    run.write_csv(f"protocol2/{descriptor}/pr.csv", pr_table(result.curve))
+
+
+def write_timing(run: RunWriter, descriptor: str, extract_s: np.ndarray,
+                 read_s: np.ndarray | None = None) -> None:
+    """``timing/<descriptor>.csv``: scan, extract_s (and read_s)."""
+    columns: dict[str, Any] = {"scan": np.arange(len(extract_s)), "extract_s": extract_s}
+    if read_s is not None:
+        columns["read_s"] = read_s
+    run.write_csv(f"timing/{descriptor}.csv", columns)
+
+
+def write_metrics(run: RunWriter, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+    """``metrics.json`` (header + results) and ``metrics.csv`` (the rows, flattened)."""
+    run.write_json("metrics.json", {**header, "results": rows})
+    table = pd.DataFrame([_flatten(r) for r in rows])
+    run.write_csv("metrics.csv", table)
+
+
+def _flatten(row: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in row.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def json_ready(value: Any) -> Any:
+    """JSON/YAML-safe copy: NumPy scalars to Python, NaN/inf to None, tuples to lists."""
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

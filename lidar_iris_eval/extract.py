@@ -1,0 +1,273 @@
+"""Extraction pipeline: a sequence x a descriptor -> stacked descriptors + per-scan times.
+
+::
+
+    db = extract(seq, get_descriptor("m2dp"), cache=DescriptorCache(".liris-cache"))
+    db.descriptors      # (N, ...) array (record array for multi-part descriptors)
+    db.extract_s        # (N,) seconds spent in descriptor.compute per scan
+
+Scans are processed in fixed chunks (``chunk_size`` scans). With a cache each
+finished chunk is stored at once, so a killed run resumes from its last chunk,
+and the complete array is stored as one verified file at the end. A second call
+with the same inputs loads that file and computes nothing.
+
+``workers > 1`` spreads chunks over a local process pool. Timing is the wall
+time of ``descriptor.compute`` in the worker (reading the scan is timed
+separately), so it is comparable across worker counts only on an idle machine.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import sys
+import time
+from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from lidar_iris_eval import __version__
+from lidar_iris_eval.cache import CacheKey, DescriptorCache
+from lidar_iris_eval.config import params_dict
+from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.errors import LirisError
+
+DEFAULT_CHUNK_SIZE = 50
+
+
+@dataclass(frozen=True)
+class DescriptorDB:
+    """The descriptors of one sequence, with what produced them.
+
+    Attributes
+    ----------
+    descriptor, preset, params : the descriptor's registry name, preset and
+        full parameter dict.
+    descriptors : ``(N, ...)`` stacked output of ``compute``.
+    extract_s, read_s : ``(N,)`` seconds per scan spent in ``compute`` and in
+        reading the scan file (from the run that computed them).
+    sequence, fingerprint : the sequence name and content fingerprint.
+    cache_path : the cache file, or None when no cache was used.
+    from_cache : True when nothing was computed in this call.
+    """
+
+    descriptor: str
+    preset: str
+    params: dict[str, Any]
+    descriptors: np.ndarray
+    extract_s: np.ndarray
+    read_s: np.ndarray
+    sequence: str
+    fingerprint: str
+    cache_path: Path | None
+    from_cache: bool
+
+    def __len__(self) -> int:
+        return len(self.descriptors)
+
+    @property
+    def extract_ms_per_scan(self) -> float:
+        """Mean ``compute`` time per scan in milliseconds."""
+        return float(np.mean(self.extract_s) * 1e3) if len(self.extract_s) else float("nan")
+
+
+def descriptor_code_hash(descriptor: Descriptor) -> str:
+    """SHA-256 of the source files that can change ``descriptor``'s output.
+
+    That is the descriptor's own module and, for the built-in descriptors, every
+    module of the ``lidar_iris_eval.descriptors`` package (kernels live in
+    sibling modules). Coarse on purpose: editing any descriptor invalidates all
+    built-in caches, which is cheap compared with serving stale numbers.
+    """
+    module = sys.modules.get(type(descriptor).__module__)
+    own = getattr(module, "__file__", None)
+    return _source_hash(str(Path(own).resolve()) if own else "")
+
+
+@functools.cache
+def _source_hash(module_file: str) -> str:
+    """Hash once per process, so the key describes the code this process runs
+    even if a file is edited while it works."""
+    files = {Path(module_file)} if module_file else set()
+    package = Path(__file__).resolve().parent / "descriptors"
+    if module_file and Path(module_file).parent == package:
+        files.update(p.resolve() for p in package.glob("*.py"))
+    digest = hashlib.sha256()
+    for path in sorted(files):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def cache_key(seq, descriptor: Descriptor, fingerprint: str | None = None) -> CacheKey:
+    """The cache key of ``descriptor`` on ``seq`` (parameters, version, code, scan fingerprint)."""
+    return CacheKey.build(
+        sequence=seq.name,
+        fingerprint=fingerprint if fingerprint is not None else seq.fingerprint(),
+        descriptor=descriptor.name,
+        params=params_dict(descriptor.params),
+        version=__version__,
+        n_scans=len(seq),
+        code=descriptor_code_hash(descriptor),
+    )
+
+
+def chunk_ranges(n: int, size: int) -> list[tuple[int, int]]:
+    """Fixed ``[start, stop)`` ranges; fixed so a resumed run finds the same chunks."""
+    return [(a, min(a + size, n)) for a in range(0, n, size)]
+
+
+def extract(
+    seq,
+    descriptor: Descriptor,
+    cache: DescriptorCache | str | os.PathLike | None = None,
+    workers: int = 1,
+    progress: bool = False,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> DescriptorDB:
+    """Compute (or load) the descriptors of every scan of ``seq``.
+
+    Parameters
+    ----------
+    seq : a :class:`~lidar_iris_eval.io.Sequence` (``len``, ``seq[i]``, ``name``,
+        ``fingerprint()``).
+    descriptor : the descriptor to run.
+    cache : a :class:`DescriptorCache`, a cache folder, or None for no caching.
+    workers : processes to use; 1 computes in this process.
+    progress : show a tqdm bar on stderr.
+    chunk_size : scans per chunk (unit of resumption and of pool tasks).
+    """
+    if workers < 1:
+        raise LirisError(f"--workers {workers}", "must be at least 1")
+    if chunk_size < 1:
+        raise ValueError("chunk_size must be positive")
+    if cache is not None and not isinstance(cache, DescriptorCache):
+        cache = DescriptorCache(cache)
+    fingerprint = seq.fingerprint()
+    key = cache_key(seq, descriptor, fingerprint)
+    meta = dict(
+        descriptor=descriptor.name,
+        preset=getattr(descriptor, "preset", "custom"),
+        params=params_dict(descriptor.params),
+        sequence=seq.name,
+        fingerprint=fingerprint,
+        cache_path=cache.path(key) if cache is not None else None,
+    )
+    if cache is not None:
+        stored = cache.load(key)
+        if stored is not None and _complete(stored, len(seq)):
+            return DescriptorDB(**meta, **_split(stored), from_cache=True)
+
+    chunks = cache.load_chunks(key) if cache is not None else {}
+    ranges = chunk_ranges(len(seq), chunk_size)
+    chunks = {r: arrays for r, arrays in chunks.items() if r in ranges}
+    todo = [r for r in ranges if r not in chunks]
+    done = sum(b - a for a, b in chunks)
+    bar = tqdm(total=len(seq), initial=done, desc=descriptor.name, unit="scan",
+               file=sys.stderr, disable=not progress, leave=False)
+    with bar:
+        for (a, b), arrays in _compute_chunks(seq, descriptor, todo, workers, bar):
+            chunks[(a, b)] = arrays
+            if cache is not None:
+                cache.store_chunk(key, a, b, arrays)
+    arrays = _assemble(chunks, ranges, descriptor.name)
+    if cache is not None:
+        cache.store(key, arrays)
+    return DescriptorDB(**meta, **_split(arrays), from_cache=False)
+
+
+def _complete(arrays: dict[str, np.ndarray], n: int) -> bool:
+    names = {"descriptors", "extract_s", "read_s"}
+    return names <= set(arrays) and all(len(arrays[k]) == n for k in names)
+
+
+def _split(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: arrays[k] for k in ("descriptors", "extract_s", "read_s")}
+
+
+def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
+    parts = [chunks[r] for r in ranges]
+    if not parts:
+        raise LirisError(name, "the sequence has no scans")
+    first = parts[0]["descriptors"]
+    for part in parts[1:]:
+        d = part["descriptors"]
+        if d.dtype != first.dtype or d.shape[1:] != first.shape[1:]:
+            raise RuntimeError(
+                f"{name}.compute returned inconsistent outputs: {first.dtype}{first.shape[1:]} "
+                f"vs {d.dtype}{d.shape[1:]}"
+            )
+    names = ("descriptors", "extract_s", "read_s")
+    return {k: np.concatenate([p[k] for p in parts]) for k in names}
+
+
+def _compute_chunks(seq, descriptor, todo, workers, bar) -> Iterable:
+    """Yield ``((a, b), arrays)`` for each range in ``todo`` (any order with a pool)."""
+    if workers == 1 or len(todo) <= 1:
+        for a, b in todo:
+            yield (a, b), _raise_errors(_compute_range(seq, descriptor, a, b, bar.update))
+        return
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(todo)),
+        initializer=_init_worker,
+        initargs=(seq, descriptor),
+    ) as pool:
+        futures = {pool.submit(_worker_range, a, b): (a, b) for a, b in todo}
+        try:
+            for future in as_completed(futures):
+                a, b = futures[future]
+                arrays = _raise_errors(future.result())
+                bar.update(b - a)
+                yield (a, b), arrays
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
+
+
+def _compute_range(seq, descriptor, a: int, b: int, tick=None):
+    """Descriptors of scans ``[a, b)``; a LirisError is returned, not raised.
+
+    Returning it keeps the error intact across a process boundary (its
+    two-argument constructor does not survive pickling).
+    """
+    outputs, extract_s, read_s = [], np.empty(b - a), np.empty(b - a)
+    try:
+        for k, i in enumerate(range(a, b)):
+            t0 = time.perf_counter()
+            points = seq[i]
+            t1 = time.perf_counter()
+            outputs.append(np.asarray(descriptor.compute(points)))
+            t2 = time.perf_counter()
+            read_s[k], extract_s[k] = t1 - t0, t2 - t1
+            if tick is not None:
+                tick(1)
+    except LirisError as err:
+        return ("error", err.source, err.problem)
+    return {"descriptors": np.stack(outputs), "extract_s": extract_s, "read_s": read_s}
+
+
+def _raise_errors(result):
+    if isinstance(result, tuple):
+        _, source, problem = result
+        raise LirisError(source, problem)
+    return result
+
+
+# Per-process state of pool workers: set once by the initializer, so each task
+# only ships two integers instead of the sequence and descriptor.
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(seq, descriptor) -> None:
+    _WORKER["seq"], _WORKER["descriptor"] = seq, descriptor
+
+
+def _worker_range(a: int, b: int):
+    return _compute_range(_WORKER["seq"], _WORKER["descriptor"], a, b)

@@ -1,0 +1,138 @@
+"""Affinity matrices: ground truth beside each method (the paper's Fig. 7).
+
+Descriptor distances live on different scales (Iris Hamming in [0, 1], ESF L1
+in [0, 2], …), so each method is shown as a *similarity*
+``1 − (d − d_min) / (d_max − d_min)`` over its off-diagonal pairs; ground
+truth is 1 for positive pairs. All panels then share one colour scale [0, 1]
+and one colorbar. The diagonal (a frame against itself, stored as NaN) is
+drawn as 1 in every panel.
+
+Matrices larger than the panel's pixels are reduced in blocks before drawing:
+distances by their block *minimum* and ground truth by its block maximum, so
+the one-frame-wide loop-closure diagonals that the figure is about cannot be
+averaged away by image resampling.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
+
+from lidar_iris_eval.plotting import style
+
+#: at most this many matrix cells per panel side (a panel is ~300 px wide at 300 dpi)
+MAX_DISPLAY = 600
+CMAP = "viridis"
+PANEL_HEIGHT = 1.08  # inches per row: a ~0.8 in square panel, its title and tick labels
+MAX_COLUMNS = 3
+
+
+def block_reduce(matrix: np.ndarray, block: int, how: str) -> np.ndarray:
+    """Reduce an (N, N) matrix over ``block``×``block`` tiles (``min`` or ``max``).
+
+    NaNs are ignored; a tile with no finite value stays NaN. The last tiles
+    may be partial (the matrix is padded, not cropped).
+    """
+    matrix = np.asarray(matrix)
+    if block <= 1:
+        return matrix.astype(np.float64)
+    n = matrix.shape[0]
+    size = math.ceil(n / block) * block
+    fill = np.inf if how == "min" else -np.inf
+    # float32 is exact for the stored distances and halves the memory at KITTI scale
+    padded = np.full((size, size), fill, dtype=np.result_type(matrix.dtype, np.float32))
+    padded[:n, :n] = np.where(np.isnan(matrix), fill, matrix)
+    tiles = padded.reshape(size // block, block, size // block, block)
+    out = tiles.min(axis=(1, 3)) if how == "min" else tiles.max(axis=(1, 3))
+    out = out.astype(np.float64)
+    out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def similarity(distances: np.ndarray) -> np.ndarray:
+    """``1 − min-max normalised distance``; the diagonal becomes 1.
+
+    Min and max are taken over finite off-diagonal entries; a constant matrix
+    maps to all ones.
+    """
+    d = np.array(distances, dtype=np.float64)
+    n = min(d.shape)
+    diag = np.arange(n)
+    off = d.copy()
+    off[diag, diag] = np.nan
+    finite = off[np.isfinite(off)]
+    if finite.size == 0:
+        sim = np.ones_like(d)
+    else:
+        lo, hi = float(finite.min()), float(finite.max())
+        span = hi - lo if hi > lo else 1.0
+        sim = 1.0 - (d - lo) / span
+    sim[diag, diag] = 1.0
+    return np.clip(sim, 0.0, 1.0)
+
+
+def display_block(n_frames: int) -> int:
+    return max(1, math.ceil(n_frames / MAX_DISPLAY))
+
+
+def affinity_grid(n_panels: int) -> tuple[int, int]:
+    """``(rows, columns)`` for ground truth plus the methods."""
+    cols = min(MAX_COLUMNS, n_panels)
+    return math.ceil(n_panels / cols), cols
+
+
+def affinity_figure_size(n_methods: int) -> tuple[float, float]:
+    rows, _ = affinity_grid(n_methods + 1)
+    return style.COLUMN_WIDTH, round(0.2 + rows * PANEL_HEIGHT, 2)
+
+
+def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray]) -> Figure:
+    """Ground truth (bool N×N) beside each method's distance matrix (N×N).
+
+    The image of panel k has gid ``"affinity:ground-truth"`` or
+    ``"affinity:<name>"``; its array is the (block-reduced) similarity drawn.
+    """
+    n = gt_positive.shape[0]
+    block = display_block(n)
+    gt = block_reduce(gt_positive.astype(np.float32), block, "max")
+    idx = np.arange(gt.shape[0])
+    gt[idx, idx] = 1.0
+    panels = [("ground-truth", "Ground truth", gt)]
+    for name, matrix in distances.items():
+        reduced = block_reduce(matrix, block, "min")
+        panels.append((name, style.method_label(name), similarity(reduced)))
+
+    rows, cols = affinity_grid(len(panels))
+    with style.context():
+        fig = style.new_figure(*affinity_figure_size(len(panels) - 1))
+        axes = fig.subplots(rows, cols, squeeze=False, sharex=True, sharey=True)
+        extent = (-0.5, n - 0.5, n - 0.5, -0.5)  # frame indices on both axes
+        image = None
+        for k, ax in enumerate(axes.flat):
+            if k >= len(panels):
+                ax.set_axis_off()
+                continue
+            key, title, data = panels[k]
+            image = ax.imshow(data, cmap=CMAP, vmin=0.0, vmax=1.0, extent=extent,
+                              interpolation="nearest", gid=f"affinity:{key}")
+            ax.set_title(title, pad=2)
+            ax.xaxis.set_major_locator(MaxNLocator(3, integer=True))
+            ax.yaxis.set_major_locator(MaxNLocator(3, integer=True))
+            ax.tick_params(labelsize=6, length=2)
+            for spine in ax.spines.values():
+                spine.set_visible(True)
+            # tick labels and axis names only on the outer edge of the grid
+            bottom = k + cols >= len(panels)
+            ax.tick_params(labelbottom=bottom, labelleft=k % cols == 0)
+            if bottom:
+                ax.set_xlabel("frame", labelpad=1)
+            if k % cols == 0:
+                ax.set_ylabel("frame", labelpad=1)
+        bar = fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.85, aspect=25, pad=0.02)
+        bar.set_label("similarity", fontsize=7)
+        bar.ax.tick_params(labelsize=6)
+    return fig

@@ -1,0 +1,302 @@
+"""From a run directory to figures: one builder per figure, and the drivers.
+
+Each ``build_*`` function reads what it needs from a
+:class:`~lidar_iris_eval.plotting.results.RunResults` and returns a
+:class:`~matplotlib.figure.Figure` (or ``None`` with a warning when an
+optional input is missing), so callers and tests can inspect the plotted
+data before anything is written. :func:`plot_run` and :func:`plot_compare`
+write them under stable names.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.plotting import style
+from lidar_iris_eval.plotting.affinity import affinity_figure
+from lidar_iris_eval.plotting.pr import pr_figure, protocol_title, run_curves
+from lidar_iris_eval.plotting.results import RunResults, load_run
+from lidar_iris_eval.plotting.timing import timing_figure
+from lidar_iris_eval.plotting.trajectory import Outcomes, outcomes, trajectory_figure
+
+#: figure name -> file stem; stable, because the README links to them
+FILE_STEMS = {
+    "pr1": "pr_protocol1",
+    "pr2": "pr_protocol2",
+    "affinity": "affinity",
+    "trajectory": "trajectory",
+    "timing": "timing",
+    "iris_frame": "iris_frame",
+    "iris_alignment": "iris_alignment",
+}
+IRIS = "lidar-iris"
+
+
+# ---- builders -------------------------------------------------------------------------
+def build_pr(run: RunResults, protocol: int) -> Figure | None:
+    """All methods' PR curves for one protocol, or None when the run lacks it."""
+    if protocol not in run.protocols():
+        return None
+    exclude = run.gt_settings.exclude if protocol == 1 else None
+    return pr_figure(run_curves(run, protocol), protocol_title(protocol, exclude))
+
+
+def build_pr_compare(runs: Sequence[RunResults], protocol: int) -> Figure | None:
+    """PR curves of several runs overlaid; colour = method, line style = run."""
+    curves = []
+    for k, run in enumerate(runs):
+        if protocol in run.protocols():
+            dash = style.RUN_LINESTYLES[k % len(style.RUN_LINESTYLES)]
+            curves += run_curves(run, protocol, prefix=run.name, linestyle=dash)
+    if not curves:
+        return None
+    return pr_figure(curves, protocol_title(protocol), legend_outside=True)
+
+
+def build_affinity(run: RunResults) -> Figure | None:
+    """Ground truth beside each protocol 2 affinity matrix."""
+    names = run.descriptors(2)
+    matrices = {}
+    for name in names:
+        matrix = run.affinity(name)
+        if matrix is None:
+            warn(run.path / "protocol2" / name, "no affinity.npy; left out of affinity figure")
+        else:
+            matrices[name] = matrix
+    if not matrices:
+        return None
+    return affinity_figure(run.ground_truth().positive_matrix(), matrices)
+
+
+def build_trajectory(run: RunResults) -> Figure:
+    """The path with revisits, and protocol 1 detections at each method's F1max τ."""
+    from lidar_iris_eval.evaluation.ground_truth import ground_plane_axes
+
+    settings = run.gt_settings
+    results: dict[str, Outcomes] = {}
+    for name in run.descriptors(1):
+        matches = run.matches(name)
+        tau = _number(run.metric(1, name).get("f1_threshold"))
+        if matches is None or math.isnan(tau):
+            warn(run.path / "protocol1" / name,
+                 "no matches.csv or f1_threshold; left out of trajectory figure")
+            continue
+        results[name] = outcomes(matches, tau)
+    return trajectory_figure(run.positions, ground_plane_axes(settings.pose_frame),
+                             run.ground_truth().revisit, results, frame=settings.pose_frame)
+
+
+def build_timing(run: RunResults) -> Figure | None:
+    """Per-scan extraction times (box) and matching time per method (bar)."""
+    extract = {}
+    for name in run.descriptors():
+        table = run.timing(name)
+        if table is not None:
+            extract[name] = table["extract_s"].to_numpy(dtype=np.float64) * 1e3
+    match, label = {}, "matching [ms / query]"
+    if run.descriptors(2):
+        match = {n: _number(run.metric(2, n).get("match_us_per_pair")) for n in run.descriptors(2)}
+        label = "matching [µs / pair]"
+    if not any(np.isfinite(v) for v in match.values()):
+        match = {n: _number(run.metric(1, n).get("match_ms_per_query")) for n in run.descriptors(1)}
+        label = "matching [ms / query]"
+    if not extract and not any(np.isfinite(v) for v in match.values()):
+        return None
+    return timing_figure(extract, match, label)
+
+
+def build_iris(run: RunResults, frame: int | None = None) -> tuple[Figure | None, Figure | None]:
+    """LiDAR Iris image + binary maps of one frame, and the alignment of a revisit pair.
+
+    Needs the scans (``sequence`` in config.yaml) and the LiDAR Iris module;
+    without them both figures are skipped with a warning. ``frame`` defaults
+    to the first revisit query; its partner is the nearest earlier frame
+    allowed by the exclusion window.
+    """
+    n = run.n_frames
+    if frame is not None and not 0 <= frame < n:
+        raise LirisError(f"--frame {frame}", f"frame index out of range (run has {n} frames)")
+    gt = run.ground_truth()
+    revisits = np.flatnonzero(gt.revisit)
+    if frame is None:
+        frame = int(revisits[0]) if len(revisits) else 0
+    sequence = _open_run_sequence(run)
+    if sequence is None:
+        return None, None
+    try:
+        from lidar_iris_eval.descriptors import lidar_iris
+        from lidar_iris_eval.plotting.iris_figures import iris_alignment_figure, iris_frame_figure
+    except ImportError as err:
+        warn(run.path, f"LiDAR Iris figures skipped: {err}")
+        return None, None
+    desc = _iris_descriptor(run)
+    params = desc.params
+    image = lidar_iris.iris_image(sequence[frame], params)
+    features, mask = lidar_iris.binary_features(image, params)
+    frame_fig = iris_frame_figure(image, features, mask, _wavelengths(params), frame)
+    partner = _revisit_partner(run, frame, gt)
+    if partner is None:
+        warn(f"--frame {frame}", "not a revisit query (no earlier frame within the radius "
+             f"and outside E = {gt.exclude}); alignment figure skipped")
+        return frame_fig, None
+    other = lidar_iris.iris_image(sequence[partner], params)
+    dist, yaw = desc.distance(desc.compute(sequence[frame]), desc.compute(sequence[partner]))
+    if not np.isfinite(yaw):
+        warn(f"--frame {frame}", f"no yaw estimate against frame {partner} (every feature bit "
+             "masked); alignment figure skipped")
+        return frame_fig, None
+    align_fig = iris_alignment_figure(image, other, yaw, dist, (frame, partner))
+    return frame_fig, align_fig
+
+
+# ---- drivers ----------------------------------------------------------------------------
+def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = "png",
+             frame: int | None = None) -> list[Path]:
+    """Write every figure of one run; returns the files written.
+
+    ``out_dir`` defaults to ``<run_dir>/figures``; figures already there are
+    replaced (they are derived outputs). In any other folder, replacing an
+    existing file is announced with a warning.
+    """
+    fmt = _check_format(fmt)
+    run = load_run(run_dir)
+    if frame is not None and not 0 <= frame < run.n_frames:
+        raise LirisError(f"--frame {frame}",
+                         f"frame index out of range (run has {run.n_frames} frames)")
+    default_out = out_dir is None
+    out = Path(run.path / "figures" if default_out else out_dir)
+    figures: dict[str, Figure | None] = {
+        "pr1": build_pr(run, 1),
+        "pr2": build_pr(run, 2),
+        "affinity": build_affinity(run),
+        "trajectory": build_trajectory(run),
+        "timing": build_timing(run),
+    }
+    # drawn even when the run did not score LiDAR Iris (default preset then): they
+    # explain the method, and only need the scans
+    figures["iris_frame"], figures["iris_alignment"] = build_iris(run, frame)
+    return _write(figures, out, fmt, warn_overwrite=not default_out)
+
+
+def plot_compare(run_dirs: Sequence[str | Path], out_dir: str | Path | None = None,
+                 fmt: str = "png") -> list[Path]:
+    """Overlay the PR curves of several runs (labels ``"<run>: <descriptor>"``).
+
+    ``out_dir`` defaults to ``compare-<run>-…/`` next to the first run.
+    """
+    fmt = _check_format(fmt)
+    if len(run_dirs) < 2:
+        raise LirisError("--compare", "give at least two results directories")
+    runs = [load_run(p) for p in run_dirs]
+    names = [r.name for r in runs]
+    if len(set(names)) < len(names):  # same folder name in different places: use parents
+        for run in runs:
+            run.name = f"{run.path.parent.name}/{run.path.name}"
+    default_out = out_dir is None
+    out = Path(runs[0].path.parent / ("compare-" + "-".join(r.path.name for r in runs))
+               if default_out else out_dir)
+    figures = {"pr1": build_pr_compare(runs, 1), "pr2": build_pr_compare(runs, 2)}
+    return _write(figures, out, fmt, warn_overwrite=not default_out)
+
+
+def figure_path(out_dir: Path, key: str, fmt: str) -> Path:
+    return Path(out_dir) / f"{FILE_STEMS[key]}.{fmt}"
+
+
+# ---- helpers --------------------------------------------------------------------------
+def _write(figures: dict[str, Figure | None], out: Path, fmt: str,
+           warn_overwrite: bool) -> list[Path]:
+    if out.exists() and not out.is_dir():
+        raise LirisError(out, "output path exists and is not a folder")
+    written = []
+    for key, fig in figures.items():
+        if fig is None:
+            continue
+        path = figure_path(out, key, fmt)
+        if warn_overwrite and path.exists():
+            warn(path, "replacing existing figure")
+        written.append(style.save(fig, path))
+    return written
+
+
+def _check_format(fmt: str) -> str:
+    fmt = fmt.lower().lstrip(".")
+    if fmt not in style.FORMATS:
+        raise LirisError(f"--format {fmt}", f"choose one of {', '.join(style.FORMATS)}")
+    return fmt
+
+
+def _number(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _open_run_sequence(run: RunResults):
+    """The run's sequence, or None (with a warning) when it cannot be used."""
+    path = run.sequence_path
+    if path is None:
+        warn(run.path / "config.yaml", "no sequence path; LiDAR Iris figures skipped")
+        return None
+    if not path.is_absolute() and not path.exists() and (run.path / path).exists():
+        path = run.path / path
+    if not path.exists():
+        warn(path, "sequence not found; LiDAR Iris figures skipped")
+        return None
+    from lidar_iris_eval.io import open_sequence
+
+    try:
+        sequence = open_sequence(path)
+    except LirisError as err:
+        warn(path, f"cannot open sequence ({err.problem}); LiDAR Iris figures skipped")
+        return None
+    if len(sequence) != run.n_frames:
+        warn(path, f"has {len(sequence)} scans but the run has {run.n_frames} frames; "
+             "LiDAR Iris figures skipped")
+        return None
+    return sequence
+
+
+def _iris_descriptor(run: RunResults):
+    """LiDAR Iris with the run's preset and parameters (so figures show what was scored),
+    or the default preset when the run did not evaluate it."""
+    from lidar_iris_eval.descriptors import get_descriptor
+
+    preset, params = run.descriptor_params(IRIS)
+    try:
+        return get_descriptor(IRIS, preset=preset, **params)
+    except LirisError as err:
+        warn(run.path / "config.yaml", f"{err.problem}; using the default LiDAR Iris preset")
+        return get_descriptor(IRIS)
+
+
+def _wavelengths(params) -> list[float] | None:
+    """Filter wavelengths λ_s = minWaveLength · mult^s, when the params expose them."""
+    nscale = getattr(params, "nscale", None)
+    base = getattr(params, "min_wavelength", None) or getattr(params, "min_wave_length", None)
+    mult = getattr(params, "mult", None)
+    if nscale is None or base is None or mult is None:
+        return None
+    return [float(base) * float(mult) ** s for s in range(int(nscale))]
+
+
+def _revisit_partner(run: RunResults, frame: int, gt) -> int | None:
+    """Nearest frame j ≤ frame − E within the radius, or None."""
+    from lidar_iris_eval.evaluation.ground_truth import gt_coordinates
+
+    last = frame - gt.exclude
+    if last < 0:
+        return None
+    s = run.gt_settings
+    coords = gt_coordinates(run.positions, s.pose_frame, s.distance)
+    dist = np.linalg.norm(coords[: last + 1] - coords[frame], axis=1)
+    best = int(np.argmin(dist))
+    return best if dist[best] < s.radius else None
+

@@ -1,0 +1,170 @@
+"""Precision–recall curves, all methods overlaid (the paper's Fig. 8 and 10).
+
+Each curve is drawn from ``pr.csv`` as written (the exact curve, one point per
+threshold); only curves with more points than a PNG can show (protocol 2 on
+KITTI has millions) are thinned, by arc length, so every visible corner stays.
+The maximum-F1 point is marked, and the legend carries AP and F1max.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from lidar_iris_eval.plotting import style
+
+PR_SIZE = (style.COLUMN_WIDTH, 2.6)
+#: above this many points a curve is thinned for display
+MAX_PLOT_POINTS = 20_000
+#: thinning step in (recall, precision) units: far below one pixel at 300 dpi
+THIN_STEP = 1.0 / 4000
+
+PROTOCOL_TITLES = {1: "Protocol 1: loop-closure detection", 2: "Protocol 2: all pairs"}
+
+
+@dataclass(frozen=True)
+class PRCurve:
+    """One curve and how to draw it."""
+
+    key: str  # identifies the curve (gid of its lines), e.g. "lidar-iris" or "run: lidar-iris"
+    label: str
+    color: str
+    recall: np.ndarray
+    precision: np.ndarray
+    ap: float = math.nan
+    f1_max: float = math.nan
+    linestyle: str = "-"
+
+
+def f1_scores(precision: np.ndarray, recall: np.ndarray) -> np.ndarray:
+    """Pointwise F1 with 0 where precision and recall are both 0."""
+    precision = np.asarray(precision, dtype=np.float64)
+    recall = np.asarray(recall, dtype=np.float64)
+    total = precision + recall
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f1 = np.where(total > 0, 2 * precision * recall / total, 0.0)
+    return np.nan_to_num(f1, nan=0.0)
+
+
+def thin_indices(recall: np.ndarray, precision: np.ndarray, step: float = THIN_STEP,
+                 keep: Sequence[int] = ()) -> np.ndarray:
+    """Indices of a subset that draws the same polyline at screen resolution.
+
+    Keeps the first point of every ``step`` of arc length in the unit
+    (recall, precision) square, the last point, and the indices in ``keep``.
+    """
+    n = len(recall)
+    if n <= 2:
+        return np.arange(n)
+    seg = np.hypot(np.diff(recall), np.diff(precision))
+    arc = np.concatenate([[0.0], np.cumsum(np.nan_to_num(seg))])
+    bins = np.floor(arc / step).astype(np.int64)
+    first = np.flatnonzero(np.diff(bins, prepend=-1) != 0)
+    return np.unique(np.concatenate([first, [n - 1], np.asarray(keep, dtype=np.int64)]))
+
+
+def legend_label(name: str, ap: float, f1_max: float) -> str:
+    parts = []
+    if not math.isnan(ap):
+        parts.append(f"AP {ap:.3f}")
+    if not math.isnan(f1_max):
+        parts.append(f"F1max {f1_max:.3f}")
+    return f"{name} ({', '.join(parts)})" if parts else name
+
+
+def pr_figure(curves: Sequence[PRCurve], title: str = "", legend_outside: bool = False) -> Figure:
+    """Overlay PR curves; mark each curve's maximum-F1 point.
+
+    The curve of ``c`` is the Line2D with gid ``"pr:" + c.key`` and its
+    max-F1 marker has gid ``"f1max:" + c.key``, so tests and callers can find
+    the plotted data again.
+    """
+    with style.context():
+        fig = style.new_figure(*pr_figure_size(len(curves), legend_outside))
+        ax = fig.add_subplot()
+        for curve in curves:
+            recall = np.asarray(curve.recall, dtype=np.float64)
+            precision = np.asarray(curve.precision, dtype=np.float64)
+            f1 = f1_scores(precision, recall)
+            best = int(np.argmax(f1)) if len(f1) else None
+            shown = np.arange(len(recall))
+            if len(recall) > MAX_PLOT_POINTS:
+                shown = thin_indices(recall, precision, keep=[] if best is None else [best])
+            ax.plot(recall[shown], precision[shown], color=curve.color,
+                    linestyle=curve.linestyle, label=curve.label, gid=f"pr:{curve.key}")
+            if best is not None:
+                ax.plot([recall[best]], [precision[best]], marker="o", markersize=3.5,
+                        markerfacecolor="white", markeredgecolor=curve.color,
+                        markeredgewidth=1.0, linestyle="none", gid=f"f1max:{curve.key}",
+                        zorder=3)
+        ax.set_xlim(0, 1.02)
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("Recall")
+        ax.set_ylabel("Precision")
+        ax.grid(True, linewidth=0.3, alpha=0.5)
+        if title:
+            ax.set_title(title)
+        if curves:
+            # one extra entry explains the marker instead of repeating it per curve
+            handles, labels = ax.get_legend_handles_labels()
+            handles.append(Line2D([], [], marker="o", markersize=3.5, markerfacecolor="white",
+                                  markeredgecolor="0.35", linestyle="none"))
+            labels.append("max F1")
+            if legend_outside:
+                fig.legend(handles, labels, loc="outside lower center", ncols=1)
+            else:
+                ax.legend(handles, labels, loc="lower left")
+    return fig
+
+
+def pr_figure_size(n_curves: int, legend_outside: bool = False) -> tuple[float, float]:
+    """Width and height (inches): fixed, plus one legend line per entry when outside."""
+    width, height = PR_SIZE
+    if legend_outside:
+        height += 0.12 * (n_curves + 1) + 0.1
+    return width, round(height, 2)
+
+
+def run_curves(run, protocol: int, prefix: str = "", linestyle: str = "-") -> list[PRCurve]:
+    """The PR curves of every descriptor of ``run`` for ``protocol``."""
+    curves = []
+    for name in run.descriptors(protocol):
+        table = run.pr(protocol, name)
+        metric = run.metric(protocol, name)
+        recall = table["recall"].to_numpy(dtype=np.float64)
+        precision = table["precision"].to_numpy(dtype=np.float64)
+        ap = _number(metric.get("ap"))
+        f1_max = _number(metric.get("f1_max"))
+        if math.isnan(f1_max) and len(recall):
+            f1_max = float(f1_scores(precision, recall).max())
+        shown = f"{prefix}: {style.method_label(name)}" if prefix else style.method_label(name)
+        curves.append(PRCurve(
+            key=f"{prefix}: {name}" if prefix else name,
+            label=legend_label(shown, ap, f1_max),
+            color=style.method_color(name),
+            recall=recall,
+            precision=precision,
+            ap=ap,
+            f1_max=f1_max,
+            linestyle=linestyle,
+        ))
+    return curves
+
+
+def protocol_title(protocol: int, exclude: int | None = None) -> str:
+    title = PROTOCOL_TITLES.get(protocol, f"Protocol {protocol}")
+    if protocol == 1 and exclude is not None:
+        title += f" (E = {exclude})"
+    return title
+
+
+def _number(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan

@@ -1,0 +1,129 @@
+"""One look for every figure: method colours, column-width sizes, fonts.
+
+Figures are built on :class:`matplotlib.figure.Figure` directly (never pyplot),
+so plotting neither needs a display nor touches global state: the rc settings
+below apply only inside :func:`context`. Sizes are fixed in inches and figures
+are saved without ``bbox_inches="tight"``, so the pixel size of every file is
+``size × dpi`` and a README can rely on it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+
+import matplotlib
+from matplotlib.figure import Figure
+
+#: one column of a two-column paper (IEEE: 3.5 in)
+COLUMN_WIDTH = 3.5
+#: raster resolution; vector formats ignore it
+DPI = 300
+FORMATS = ("png", "pdf", "svg")
+
+#: fixed colours per registry name (Okabe–Ito, safe for colour-blind readers)
+METHOD_COLORS = {
+    "lidar-iris": "#D55E00",
+    "scan-context": "#0072B2",
+    "m2dp": "#009E73",
+    "esf": "#CC79A7",
+}
+#: colours for methods outside the registry, picked by a stable hash of the name
+_SPARE_COLORS = ("#E69F00", "#56B4E9", "#8C564B", "#7F7F7F", "#000000")
+
+METHOD_LABELS = {
+    "lidar-iris": "LiDAR Iris",
+    "scan-context": "Scan Context",
+    "m2dp": "M2DP",
+    "esf": "ESF",
+}
+#: the registry order: methods are always listed in it so legends line up
+METHOD_ORDER = tuple(METHOD_COLORS)
+
+#: line styles that tell runs apart when `liris plot --compare` overlays them
+RUN_LINESTYLES = ("-", "--", ":", "-.")
+
+#: detection markers on the trajectory plot (true/false positive, missed revisit)
+OUTCOME_COLORS = {"tp": "#009E73", "fp": "#D55E00", "missed": "#0072B2"}
+
+RC = {
+    "font.size": 8,
+    "axes.titlesize": 8,
+    "axes.labelsize": 8,
+    "xtick.labelsize": 7,
+    "ytick.labelsize": 7,
+    "legend.fontsize": 6.5,
+    "legend.frameon": False,
+    "legend.handlelength": 1.6,
+    "lines.linewidth": 1.0,
+    "lines.markersize": 4,
+    "axes.linewidth": 0.6,
+    "xtick.major.width": 0.6,
+    "ytick.major.width": 0.6,
+    "xtick.major.size": 2.5,
+    "ytick.major.size": 2.5,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "savefig.dpi": DPI,
+    "figure.dpi": 100,
+    "pdf.fonttype": 42,  # embed TrueType so PDF text stays editable
+    "svg.fonttype": "none",
+    "image.interpolation": "nearest",
+}
+
+
+def method_color(name: str) -> str:
+    """The colour of a descriptor, identical in every figure and every run."""
+    if name in METHOD_COLORS:
+        return METHOD_COLORS[name]
+    return _SPARE_COLORS[zlib.crc32(name.encode()) % len(_SPARE_COLORS)]
+
+
+def method_label(name: str) -> str:
+    """Human-readable descriptor name for legends and titles."""
+    return METHOD_LABELS.get(name, name)
+
+
+def method_sort_key(name: str) -> tuple[int, str]:
+    """Registry order first, unknown names after them alphabetically."""
+    return (METHOD_ORDER.index(name) if name in METHOD_ORDER else len(METHOD_ORDER), name)
+
+
+@contextlib.contextmanager
+def context() -> Iterator[None]:
+    """Apply the house style for the duration of a block (build *and* save in it)."""
+    with matplotlib.rc_context(RC):
+        yield
+
+
+def new_figure(width: float, height: float) -> Figure:
+    """A figure of fixed size with constrained layout (no overlapping labels).
+
+    Call inside :func:`context` so fonts pick up the house style.
+    """
+    return Figure(figsize=(width, height), layout="constrained")
+
+
+def pixel_size(width: float, height: float, dpi: int = DPI) -> tuple[int, int]:
+    """``(width_px, height_px)`` of a PNG saved by :func:`save`."""
+    return round(width * dpi), round(height * dpi)
+
+
+def save(fig: Figure, path: Path) -> Path:
+    """Write ``fig``; the format comes from the suffix. Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with context():
+        fig.savefig(path, dpi=DPI, metadata=_metadata(path.suffix))
+    return path
+
+
+def _metadata(suffix: str) -> dict:
+    """Drop creation dates so re-plotting the same run gives identical files."""
+    if suffix == ".pdf":
+        return {"CreationDate": None}
+    if suffix == ".svg":
+        return {"Date": None}
+    return {}

@@ -1,0 +1,455 @@
+"""``liris plot``: every figure is written at its fixed size and draws the run's data.
+
+The run directories here are fakes in the results format (docs/results-format.md)
+built by :func:`make_run`: a trajectory that drives a 60-frame circle one and
+a half times, so frames 60–89 revisit frames 0–29, with descriptor distances
+that grow with the true distance plus noise. PR curves, matches and metrics are
+computed in this file with plain loops, independently of ``liris eval``.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from conftest import write_kitti_sequence
+
+from lidar_iris_eval.cli import main
+from lidar_iris_eval.errors import LirisError, LirisWarning
+from lidar_iris_eval.plotting import (
+    build_affinity,
+    build_iris,
+    build_pr,
+    build_pr_compare,
+    build_timing,
+    build_trajectory,
+    load_run,
+    plot_compare,
+    plot_run,
+)
+from lidar_iris_eval.plotting.affinity import block_reduce, similarity
+from lidar_iris_eval.plotting.iris_figures import feature_panels, iris_alignment_figure
+from lidar_iris_eval.plotting.pr import thin_indices
+from lidar_iris_eval.plotting.trajectory import outcomes
+
+N_FRAMES = 90
+EXCLUDE = 30
+RADIUS = 4.0
+METHODS = {"lidar-iris": 0.02, "m2dp": 0.08}  # name -> noise on the distance
+
+
+# ---- the fake run -----------------------------------------------------------------------
+def exact_pr(scores: np.ndarray, accepted_ok: np.ndarray, n_positive: int) -> pd.DataFrame:
+    """Precision and recall at every distinct threshold, by brute force."""
+    rows = []
+    for tau in np.unique(scores):
+        accepted = scores <= tau
+        tp = int(np.sum(accepted & accepted_ok))
+        rows.append((tau, tp / int(accepted.sum()), tp / n_positive))
+    return pd.DataFrame(rows, columns=["threshold", "precision", "recall"])
+
+
+def summary(pr: pd.DataFrame) -> dict:
+    p, r = pr["precision"].to_numpy(), pr["recall"].to_numpy()
+    f1 = np.where(p + r > 0, 2 * p * r / np.maximum(p + r, 1e-300), 0)
+    best = int(np.argmax(f1))
+    ap = float(np.sum(np.diff(np.concatenate([[0.0], r])) * p))
+    return {"ap": ap, "f1_max": float(f1[best]), "f1_threshold": float(pr["threshold"][best])}
+
+
+def circle_positions(noise: float, rng) -> np.ndarray:
+    """Camera-frame positions (ground plane x–z) on a 60-frame circle of radius 15 m."""
+    angle = 2 * np.pi * np.arange(N_FRAMES) / 60
+    positions = np.stack([15 * np.cos(angle), np.zeros(N_FRAMES), 15 * np.sin(angle)], axis=1)
+    return positions + rng.normal(0, noise, positions.shape) * [1, 0, 1]
+
+
+def make_run(root: Path, seed: int = 0, sequence: str = "/nonexistent/sequence",
+             noise: float = 0.3) -> Path:
+    rng = np.random.default_rng(seed)
+    positions = circle_positions(noise, rng)
+    gap = np.linalg.norm(positions[:, None] - positions[None], axis=2)
+    positive = (gap < RADIUS) & ~np.eye(N_FRAMES, dtype=bool)
+    root.mkdir(parents=True)
+    np.save(root / "positions.npy", positions)
+    poses = np.tile(np.eye(4), (N_FRAMES, 1, 1))
+    poses[:, :3, 3] = positions
+    np.save(root / "poses.npy", poses)
+    results = []
+    for name, noise in METHODS.items():
+        d = gap / 30 + rng.normal(0, noise, gap.shape)
+        d = ((d + d.T) / 2).astype(np.float32)
+        np.fill_diagonal(d, np.nan)
+        # protocol 1: best match among j <= i - E
+        rows = []
+        for i in range(EXCLUDE, N_FRAMES):
+            j = int(np.argmin(d[i, : i - EXCLUDE + 1]))
+            rows.append((i, j, float(d[i, j]), float("nan"), gap[i, j],
+                         bool(positive[i, : i - EXCLUDE + 1].any()), bool(positive[i, j])))
+        matches = pd.DataFrame(rows, columns=["query", "match", "distance", "yaw_deg",
+                                              "match_dist_m", "is_revisit", "is_true"])
+        pr1 = exact_pr(matches["distance"].to_numpy(), matches["is_true"].to_numpy(),
+                       int(matches["is_revisit"].sum()))
+        off = ~np.eye(N_FRAMES, dtype=bool)
+        pr2 = exact_pr(d[off].astype(np.float64), positive[off], int(positive.sum()))
+        for protocol, pr in ((1, pr1), (2, pr2)):
+            folder = root / f"protocol{protocol}" / name
+            folder.mkdir(parents=True)
+            pr.to_csv(folder / "pr.csv", index=False)
+            row = {"protocol": protocol, "descriptor": name, "preset": "paper", **summary(pr),
+                   "extract_ms_per_scan": 5.0}
+            if protocol == 1:
+                matches.to_csv(folder / "matches.csv", index=False)
+                row["match_ms_per_query"] = 0.5 if name == "m2dp" else 40.0
+            else:
+                np.save(folder / "affinity.npy", d)
+                row["match_us_per_pair"] = 3.0 if name == "m2dp" else 250.0
+            results.append(row)
+        (root / "timing").mkdir(exist_ok=True)
+        times = rng.lognormal(np.log(0.004 if name == "m2dp" else 0.012), 0.2, N_FRAMES)
+        pd.DataFrame({"scan": np.arange(N_FRAMES), "extract_s": times}).to_csv(
+            root / "timing" / f"{name}.csv", index=False)
+    (root / "metrics.json").write_text(json.dumps({"version": "test", "results": results}))
+    config = {"version": "test", "sequence": {"path": sequence},
+              "descriptors": {n: {"preset": "paper", "params": {}} for n in METHODS},
+              "protocols": [1, 2], "radius": RADIUS,
+              "exclude": {"value": EXCLUDE, "preset": "paper"}, "distance": "3d",
+              "pose_frame": "camera", "recall_denominator": "revisits", "candidates": None}
+    (root / "config.yaml").write_text(yaml.safe_dump(config))
+    return root
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    return make_run(tmp_path_factory.mktemp("results") / "run-a")
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """Width and height from the PNG header (IHDR), without any image library."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n"
+    return struct.unpack(">II", head[16:24])
+
+
+def line(fig, gid: str):
+    found = [ln for ax in fig.axes for ln in ax.get_lines() if ln.get_gid() == gid]
+    assert len(found) == 1, f"expected one line {gid!r}, found {len(found)}"
+    return found[0]
+
+
+def image(fig, gid: str):
+    found = [im for ax in fig.axes for im in ax.get_images() if im.get_gid() == gid]
+    assert len(found) == 1, gid
+    return found[0]
+
+
+def cli(args, capsys):
+    try:
+        main(args)
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+# ---- all figures, files and sizes ----------------------------------------------------------
+def test_plot_writes_every_figure_at_fixed_size(run_dir, tmp_path, capsys):
+    out = tmp_path / "figs"
+    code, stdout, stderr = cli(["plot", str(run_dir), "--out", str(out)], capsys)
+    assert code == 0, stderr
+    written = [Path(p) for p in stdout.split()]
+    assert sorted(p.name for p in written) == ["affinity.png", "pr_protocol1.png",
+                                               "pr_protocol2.png", "timing.png", "trajectory.png"]
+    assert "sequence not found" in stderr  # iris figures need the scans: skipped, said so
+    for path in written:
+        assert path.parent == out and path.stat().st_size > 10_000
+    # 3.5 in wide at 300 dpi; heights: PR 2.6 in, timing 2.2 in, affinity one row of
+    # three panels 0.2 + 1.08 in, trajectory two panels side by side 1.85 + 0.3 in
+    assert png_size(out / "pr_protocol1.png") == (1050, 780)
+    assert png_size(out / "pr_protocol2.png") == (1050, 780)
+    assert png_size(out / "timing.png") == (1050, 660)
+    assert png_size(out / "affinity.png") == (1050, 384)
+    assert png_size(out / "trajectory.png") == (1050, 645)
+
+
+def test_default_output_is_the_runs_figures_folder_in_vector_format(run_dir):
+    with pytest.warns(LirisWarning):
+        written = plot_run(run_dir, fmt="pdf")
+    assert {p.parent for p in written} == {run_dir / "figures"}
+    assert all(p.suffix == ".pdf" and p.read_bytes()[:5] == b"%PDF-" for p in written)
+
+
+# ---- PR curves ------------------------------------------------------------------------------
+@pytest.mark.parametrize("protocol", [1, 2])
+def test_pr_curves_plot_exactly_pr_csv(run_dir, protocol):
+    run = load_run(run_dir)
+    fig = build_pr(run, protocol)
+    metrics = json.loads((run_dir / "metrics.json").read_text())["results"]
+    for name in METHODS:
+        table = pd.read_csv(run_dir / f"protocol{protocol}" / name / "pr.csv")
+        curve = line(fig, f"pr:{name}")
+        np.testing.assert_array_equal(curve.get_xdata(), table["recall"].to_numpy())
+        np.testing.assert_array_equal(curve.get_ydata(), table["precision"].to_numpy())
+        # marker at the point of maximum F1 = 2PR/(P+R)
+        p, r = table["precision"].to_numpy(), table["recall"].to_numpy()
+        best = max(range(len(p)), key=lambda k: 2 * p[k] * r[k] / (p[k] + r[k]))
+        marker = line(fig, f"f1max:{name}")
+        assert (marker.get_xdata()[0], marker.get_ydata()[0]) == (r[best], p[best])
+        row = next(m for m in metrics if m["protocol"] == protocol and m["descriptor"] == name)
+        assert f"AP {row['ap']:.3f}" in curve.get_label()
+        assert f"F1max {row['f1_max']:.3f}" in curve.get_label()
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "Recall" and ax.get_ylabel() == "Precision"
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert len(legend) == len(METHODS) + 1 and legend[-1] == "max F1"
+    # colours are fixed per method, whatever the run
+    assert line(fig, "pr:lidar-iris").get_color() != line(fig, "pr:m2dp").get_color()
+
+
+def test_long_curves_are_thinned_without_losing_shape():
+    t = np.linspace(0, 1, 200_001)
+    recall, precision = t, 1 - t**4 + 0.001 * np.sin(500 * t)
+    keep = thin_indices(recall, precision, step=1e-3, keep=[123_457])
+    assert keep[0] == 0 and keep[-1] == len(t) - 1 and 123_457 in keep
+    assert len(keep) < 10_000
+    assert np.all(np.diff(keep) > 0)
+    # every dropped point lies within one step of a kept point along the curve
+    arc = np.concatenate([[0], np.cumsum(np.hypot(np.diff(recall), np.diff(precision)))])
+    gaps = np.diff(arc[keep])
+    assert gaps.max() <= 1e-3 + np.hypot(np.diff(recall), np.diff(precision)).max()
+
+
+def test_compare_labels_runs_and_overlays_their_curves(run_dir, tmp_path):
+    other = make_run(tmp_path / "run-b", seed=1)
+    runs = [load_run(run_dir), load_run(other)]
+    fig = build_pr_compare(runs, 1)
+    for run in runs:
+        for name in METHODS:
+            curve = line(fig, f"pr:{run.name}: {name}")
+            assert curve.get_label().startswith(f"{run.name}: ")
+            table = pd.read_csv(run.path / "protocol1" / name / "pr.csv")
+            np.testing.assert_array_equal(curve.get_ydata(), table["precision"].to_numpy())
+    dashes = {line(fig, f"pr:{run.name}: m2dp").get_linestyle() for run in runs}
+    assert len(dashes) == 2
+    written = plot_compare([run_dir, other], tmp_path / "cmp", "png")
+    assert sorted(p.name for p in written) == ["pr_protocol1.png", "pr_protocol2.png"]
+    with pytest.warns(LirisWarning, match="replacing existing figure"):  # --out: never silent
+        plot_compare([run_dir, other], tmp_path / "cmp", "png")
+    # legend below the axes: 2.6 in + 0.12 in per entry (4 curves + max F1) + 0.1 in
+    assert png_size(tmp_path / "cmp" / "pr_protocol1.png") == (1050, round(3.3 * 300))
+
+
+# ---- affinity -----------------------------------------------------------------------------
+def test_block_reduce_and_similarity_by_hand():
+    m = np.array([[np.nan, 1, 5, 6],
+                  [2, np.nan, 7, 3],
+                  [9, 8, np.nan, 4],
+                  [0.5, 8, 4, np.nan]])
+    np.testing.assert_array_equal(block_reduce(m, 2, "min"), [[1, 3], [0.5, 4]])
+    np.testing.assert_array_equal(block_reduce(m[:3, :3], 2, "max"), [[2, 7], [9, np.nan]])
+    d = np.array([[np.nan, 0.2, 0.6], [0.2, np.nan, 1.0], [0.6, 1.0, np.nan]])
+    np.testing.assert_allclose(similarity(d), [[1, 1, 0.5], [1, 1, 0], [0.5, 0, 1]])
+
+
+def test_affinity_shows_ground_truth_and_methods_on_one_scale(run_dir):
+    run = load_run(run_dir)
+    fig = build_affinity(run)
+    positions = np.load(run_dir / "positions.npy")
+    gap = np.linalg.norm(positions[:, None] - positions[None], axis=2)
+    expected_gt = (gap < RADIUS).astype(float)  # includes the diagonal (distance 0)
+    np.testing.assert_array_equal(image(fig, "affinity:ground-truth").get_array(), expected_gt)
+    d = np.load(run_dir / "protocol2" / "m2dp" / "affinity.npy").astype(np.float64)
+    off = d[~np.isnan(d)]
+    expected = 1 - (d - off.min()) / (off.max() - off.min())
+    np.fill_diagonal(expected, 1.0)
+    np.testing.assert_allclose(image(fig, "affinity:m2dp").get_array(), expected, atol=1e-12)
+    images = [im for ax in fig.axes for im in ax.get_images()]
+    assert len(images) == 1 + len(METHODS)
+    assert {im.get_clim() for im in images} == {(0.0, 1.0)}
+    assert sum(1 for ax in fig.axes if ax.get_label() == "<colorbar>") == 1
+
+
+# ---- trajectory -----------------------------------------------------------------------------
+def test_outcomes_by_hand():
+    matches = pd.DataFrame({
+        "query": [30, 31, 32, 33, 34],
+        "match": [0, 1, 9, 3, 4],
+        "distance": [0.1, 0.3, 0.2, 0.5, 0.25],
+        "is_revisit": ["True", "True", "True", "False", "True"],
+        "is_true": [True, True, False, False, True],
+    })
+    got = outcomes(matches, 0.25)
+    assert got.tp.tolist() == [30, 34]  # accepted (≤ τ, equality included) and right
+    assert got.fp.tolist() == [32]
+    assert got.missed.tolist() == [31]  # a revisit whose best match was rejected
+
+
+def test_trajectory_marks_detections_in_the_ground_plane(run_dir):
+    run = load_run(run_dir)
+    fig = build_trajectory(run)
+    positions = np.load(run_dir / "positions.npy")
+    path = [ln for ax in fig.axes for ln in ax.get_lines() if ln.get_gid() == "path"][0]
+    np.testing.assert_array_equal(path.get_xdata(), positions[:, 0])  # camera frame: x–z
+    np.testing.assert_array_equal(path.get_ydata(), positions[:, 2])
+    metrics = json.loads((run_dir / "metrics.json").read_text())["results"]
+    for name in METHODS:
+        tau = next(m["f1_threshold"] for m in metrics
+                   if m["protocol"] == 1 and m["descriptor"] == name)
+        matches = pd.read_csv(run_dir / "protocol1" / name / "matches.csv")
+        tp = matches[(matches["distance"] <= tau) & matches["is_true"]]["query"].to_numpy()
+        np.testing.assert_array_equal(line(fig, f"tp:{name}").get_xdata(), positions[tp, 0])
+    axes = [ax for ax in fig.axes if ax.get_lines()]
+    assert axes[0].get_xlabel() == "x [m] (camera)"
+    assert axes[0].get_ylabel() == "z [m] (camera)"
+
+
+# ---- timing --------------------------------------------------------------------------------
+def test_timing_shows_per_scan_spread_and_matching_cost(run_dir):
+    fig = build_timing(load_run(run_dir))
+    left, right = fig.axes
+    for name in METHODS:
+        times = pd.read_csv(run_dir / "timing" / f"{name}.csv")["extract_s"].to_numpy()
+        median = line(fig, f"median:{name}").get_ydata()
+        np.testing.assert_allclose(median, 1e3 * np.median(times))
+    heights = {p.get_gid(): p.get_height() for p in right.patches}
+    assert heights == {"match:lidar-iris": 250.0, "match:m2dp": 3.0}
+    assert right.get_yscale() == "log"  # 250 vs 3 µs: more than 10×
+    assert "µs / pair" in right.get_ylabel()
+
+
+# ---- LiDAR Iris figures ----------------------------------------------------------------------
+def test_alignment_rolls_candidate_back_onto_query():
+    rng = np.random.default_rng(3)
+    query = rng.integers(0, 256, (80, 360), dtype=np.uint8)
+    candidate = np.roll(query, 40, axis=1)  # the scan turned 40° CCW
+    fig = iris_alignment_figure(query, candidate, yaw_deg=40.0, distance=0.0, frames=(5, 1))
+    np.testing.assert_array_equal(image(fig, "iris:aligned").get_array(), query)
+    fig = iris_alignment_figure(query, np.roll(query, -15, axis=1), 345.0, 0.0)
+    np.testing.assert_array_equal(image(fig, "iris:aligned").get_array(), query)
+
+
+def test_feature_panels_split_maps_and_grey_out_masked_bits():
+    features = np.zeros((8 * 2, 5), dtype=bool)
+    features[2, 1] = True  # map 1 (rows 2–3), row 0
+    mask = np.zeros_like(features)
+    mask[15, 4] = True  # map 7, row 1
+    panels = feature_panels(features, mask, n_rows=2)
+    assert len(panels) == 8
+    assert panels[1][0, 1] == 1.0 and panels[1].sum() == 1.0
+    assert panels[7][1, 4] == 0.5
+
+
+def rotate_z(points: np.ndarray, degrees: float) -> np.ndarray:
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return points @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+
+
+@pytest.fixture(scope="module")
+def run_with_scans(tmp_path_factory) -> tuple[Path, list[np.ndarray]]:
+    """A fake run whose config points at real scans on disk.
+
+    Frame 60 returns exactly to frame 0's position (no position noise) with
+    the sensor turned, so its scan is frame 0's scan rotated by -40 degrees:
+    frame 0 is frame 60 turned +40 degrees (counter-clockwise).
+    """
+    pytest.importorskip("lidar_iris_eval.descriptors.lidar_iris")
+    root = tmp_path_factory.mktemp("withscans")
+    rng = np.random.default_rng(5)
+    boxes = [rng.uniform(-0.5, 0.5, (150, 3)) * rng.uniform(1, 5, 3)
+             + [*rng.uniform(-40, 40, 2), 0.5] for _ in range(40)]
+    world = np.concatenate(boxes)
+    angles = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    ground = np.stack([np.cos(angles) * 10, np.sin(angles) * 10, np.full(720, -1.7)], axis=1)
+    base = np.concatenate([world, ground]).astype(np.float32)
+    scans = []
+    for i in range(N_FRAMES):
+        turn = -40.0 if i == 60 else float(rng.uniform(0, 360)) if i != 0 else 0.0
+        pts = rotate_z(base, turn) if i in (0, 60) else rotate_z(base[rng.random(len(base)) < 0.8],
+                                                                   turn)
+        scans.append(np.column_stack([pts, np.zeros(len(pts))]).astype(np.float32))
+    poses = np.tile(np.eye(4), (N_FRAMES, 1, 1))
+    poses[:, :3, 3] = circle_positions(0.0, rng)
+    seq = write_kitti_sequence(root / "seq", scans, poses)
+    return make_run(root / "run", sequence=str(seq), noise=0.0), scans
+
+
+def test_iris_figures_from_the_runs_sequence(run_with_scans, tmp_path):
+    run_dir, scans = run_with_scans
+    written = plot_run(run_dir, tmp_path, "png")
+    assert {p.name for p in written} >= {"iris_frame.png", "iris_alignment.png"}
+    assert png_size(tmp_path / "iris_frame.png") == (1050, 990)  # 3.5 × 3.3 in
+    assert png_size(tmp_path / "iris_alignment.png") == (1050, 780)  # 3.5 × 2.6 in
+    # default frame: the first query with a frame ≤ i − 30 within 4 m; on a
+    # 60-frame circle of radius 15 m, frame 58 (chord 30·sin 6° = 3.1 m from frame 0;
+    # frame 57 is 30·sin 9° = 4.7 m away)
+    frame_fig, align_fig = build_iris(load_run(run_dir))
+    assert "frame 58" in frame_fig.axes[0].get_title()
+    features = [im for ax in frame_fig.axes for im in ax.get_images()
+                if str(im.get_gid()).startswith("feature:")]
+    assert len(features) == 8  # 4 scales × real/imaginary
+
+
+def test_alignment_figure_rolls_a_turned_revisit_into_place(run_with_scans):
+    run_dir, _ = run_with_scans
+    _, fig = build_iris(load_run(run_dir), frame=60)
+    query = image(fig, "iris:query").get_array()
+    aligned = image(fig, "iris:aligned").get_array()
+    assert "frame 0" in fig.axes[1].get_title()  # the partner is the exact revisit
+    assert "yaw 40°" in fig.axes[2].get_title()
+    assert np.mean(query == aligned) > 0.99
+    assert np.mean(query == image(fig, "iris:candidate").get_array()) < 0.99
+
+
+# ---- bad input -------------------------------------------------------------------------------
+@pytest.mark.parametrize("case", ["missing", "no-metrics", "a-file"])
+def test_not_a_results_dir_is_a_one_line_error(tmp_path, capsys, case):
+    target = tmp_path / case
+    if case == "no-metrics":
+        target.mkdir()
+    elif case == "a-file":
+        target.write_text("x")
+    code, _, err = cli(["plot", str(target)], capsys)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err
+    assert lines[0].startswith("liris: error: ") and str(target) in lines[0]
+
+
+def test_cli_options_are_checked(run_dir, tmp_path, capsys):
+    code, _, err = cli(["plot", str(run_dir), "--format", "gif"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    code, _, err = cli(["plot", str(run_dir), str(run_dir)], capsys)
+    assert code == 2 and "--compare" in err
+    code, _, err = cli(["plot", str(run_dir), "--frame", "999", "--out", str(tmp_path)], capsys)
+    assert code == 2 and "--frame 999" in err
+    with pytest.raises(LirisError, match="at least two"):
+        plot_compare([run_dir], tmp_path)
+
+
+def test_plots_a_real_liris_eval_run(run_with_scans, tmp_path, capsys):
+    """The contract end to end: whatever `liris eval` writes, `liris plot` draws."""
+    pytest.importorskip("lidar_iris_eval.cli.eval_cmd")
+    run_dir, _ = run_with_scans
+    seq = load_run(run_dir).sequence_path
+    out = tmp_path / "eval"
+    code, _, err = cli(["eval", str(seq), "--protocol", "1", "--protocol", "2", "--descriptor",
+                        "lidar-iris", "--out", str(out), "--cache-dir",
+                        str(tmp_path / "cache"), "--quiet"], capsys)
+    assert code == 0, err
+    written = plot_run(out, fmt="png")
+    assert sorted(p.name for p in written) == sorted(
+        f"{s}.png" for s in ("pr_protocol1", "pr_protocol2", "affinity", "trajectory", "timing",
+                             "iris_frame", "iris_alignment"))
+    run = load_run(out)
+    for protocol in (1, 2):
+        fig = build_pr(run, protocol)
+        table = pd.read_csv(out / f"protocol{protocol}" / "lidar-iris" / "pr.csv")
+        curve = line(fig, "pr:lidar-iris")
+        np.testing.assert_array_equal(curve.get_xdata(), table["recall"].to_numpy())
+        np.testing.assert_array_equal(curve.get_ydata(), table["precision"].to_numpy())
