@@ -155,8 +155,8 @@ def test_killed_extract_resumes_to_identical_descriptors(tmp_path):
     script.write_text(textwrap.dedent(f"""
         import sys
         sys.path.insert(0, {str(TESTS)!r})
-        from lidar_iris_eval.descriptors import _REGISTRY
-        _REGISTRY["toy"] = "test_protocols:SlowToyHist"
+        from lidar_iris_eval.descriptors import register_descriptor
+        register_descriptor("toy", "test_protocols:SlowToyHist")
         from lidar_iris_eval.cli import main
         main(["extract", {str(root)!r}, "--descriptor", "toy", "--cache-dir",
               {str(cache_dir)!r}, "--chunk-size", "4", "--quiet"])

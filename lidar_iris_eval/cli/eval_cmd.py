@@ -13,11 +13,16 @@ import numpy as np
 from tqdm import tqdm
 
 from lidar_iris_eval import __version__
-from lidar_iris_eval.cli.extract_cmd import build_descriptors, descriptor_options, run_extraction
+from lidar_iris_eval.cli.extract_cmd import (
+    build_descriptors,
+    descriptor_options,
+    open_input,
+    run_extraction,
+)
 from lidar_iris_eval.cli.options import ground_truth_options, parse_exclude
 from lidar_iris_eval.cli.output import echo_json, echo_table
 from lidar_iris_eval.config import params_dict
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation import metrics as m
 from lidar_iris_eval.evaluation.protocol1 import REVERSE_DEGREES, protocol1
 from lidar_iris_eval.evaluation.protocol2 import protocol2, protocols_1_and_2
@@ -54,16 +59,14 @@ TABLE_COLUMNS = ("protocol", "descriptor", "preset", "ap", "f1_max", "r100p", "e
 @click.option("--block-pairs", type=int, default=DEFAULT_PAIR_BUDGET, show_default=True,
               help="Distances computed per block (bounds memory).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json instead of a table.")
-def command(sequence, protocols, descriptor_text, preset, cache_dir, workers, quiet, radius,
-            exclude, distance, pose_frame, recall_denominator, candidates, out, overwrite,
-            block_pairs, as_json):
+def command(sequence, protocols, descriptor_text, preset, sensor, cache_dir, workers, quiet,
+            radius, exclude, distance, pose_frame, recall_denominator, candidates, out, overwrite,
+            block_pairs, as_json, reader_options):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
     run folder (docs/results-format.md) that `liris plot` reads.
     """
-    from lidar_iris_eval.io import open_sequence
-
     protocols = sorted({int(p) for p in protocols})
     exclude_frames, exclude_name = parse_exclude(exclude)
     if radius <= 0:
@@ -76,19 +79,17 @@ def command(sequence, protocols, descriptor_text, preset, cache_dir, workers, qu
         raise LirisError(f"--candidates {candidates}", "only applies to --protocol 1")
     if candidates is not None and candidates < 1:
         raise LirisError(f"--candidates {candidates}", "must be at least 1")
-    descriptors = build_descriptors(descriptor_text, preset)
+    descriptors = build_descriptors(descriptor_text, preset, sensor)
     if candidates is not None:
         for d in descriptors:
             if not callable(getattr(d, "candidates", None)):
                 raise LirisError(f"--candidates {candidates}",
                                  f"{d.name} has no retrieval stage; run it without --candidates")
-    seq = open_sequence(sequence)
+    seq = open_input(sequence, reader_options)
     if out is None:
         out = Path("results") / f"{seq.name}-{datetime.now():%Y%m%d-%H%M%S}"
     check_run_dir(out, overwrite)
-    if pose_frame == "camera" and seq.camera_poses is None:
-        warn(sequence, "no camera poses; using LiDAR-frame poses for ground truth")
-        pose_frame = "lidar"
+    pose_frame = seq.resolve_pose_frame(pose_frame)
     poses = seq.camera_poses if pose_frame == "camera" else seq.poses
     positions = seq.positions(pose_frame)
     forward = seq.poses[:, :3, 0]  # LiDAR x axis: the driving direction
@@ -107,7 +108,8 @@ def command(sequence, protocols, descriptor_text, preset, cache_dir, workers, qu
                                       recall_denominator, {**settings, "progress": bar.update})
             write_timing(run, desc.name, db.extract_s, db.read_s)
         config = _config(seq, descriptors, protocols, radius, exclude_frames, exclude_name,
-                         recall_denominator, distance, pose_frame, candidates, block_pairs)
+                         recall_denominator, distance, pose_frame, candidates, block_pairs,
+                         sensor, reader_options)
         header = _header(seq, config, time.perf_counter() - started)
         run.write_yaml("config.yaml", config)
         write_metrics(run, header, rows)
@@ -177,12 +179,14 @@ def _evaluate_one(run, desc, db, positions, forward, protocols, candidates, deno
 
 
 def _config(seq, descriptors, protocols, radius, exclude, exclude_name, denominator, distance,
-            pose_frame, candidates, block_pairs) -> dict:
+            pose_frame, candidates, block_pairs, sensor, reader_options) -> dict:
     """Everything needed to reproduce the run (config.yaml)."""
     return {
         "version": __version__,
         "sequence": {"path": str(Path(seq.path).resolve()), "name": seq.name,
-                     "n_frames": len(seq), "fingerprint": seq.fingerprint()},
+                     "n_frames": len(seq), "fingerprint": seq.fingerprint(),
+                     "reader_options": {k: str(v) for k, v in reader_options.items()}},
+        "sensor": sensor,
         "descriptors": [{"name": d.name, "preset": d.preset, "params": params_dict(d.params)}
                         for d in descriptors],
         "protocols": protocols,

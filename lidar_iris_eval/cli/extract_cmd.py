@@ -8,6 +8,7 @@ import click
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.output import echo_json, echo_table
+from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_options
 from lidar_iris_eval.descriptors import Descriptor, get_descriptor
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract
@@ -30,18 +31,26 @@ def parse_descriptor_specs(text: str, preset: str | None) -> list[tuple[str, str
     return specs
 
 
-def build_descriptors(text: str, preset: str | None) -> list[Descriptor]:
-    """Descriptors from ``--descriptor`` and ``--preset`` (each validated before any work)."""
-    return [get_descriptor(name, preset=p) for name, p in parse_descriptor_specs(text, preset)]
+def build_descriptors(text: str, preset: str | None, sensor: str | None = None) -> list[Descriptor]:
+    """Descriptors from ``--descriptor``, ``--preset`` and ``--sensor``, validated before work."""
+    return [
+        get_descriptor(name, preset=p, sensor=sensor)
+        for name, p in parse_descriptor_specs(text, preset)
+    ]
 
 
 def descriptor_options(func):
     """``--descriptor``, ``--preset``, ``--cache-dir``, ``--workers``, ``--quiet``."""
     options = [
+        pose_file_options,
+        sequence_options,
         click.option("--descriptor", "-d", "descriptor_text", required=True,
                      help="NAME[,NAME...]; NAME:PRESET picks a preset for one descriptor."),
         click.option("--preset", default=None,
                      help="Descriptor preset for all descriptors (default: each one's first)."),
+        click.option("--sensor", type=click.Choice(["hdl64", "vlp16"]), default="hdl64",
+                     show_default=True,
+                     help="Sensor-specific preset values (e.g. LiDAR Iris height range)."),
         click.option("--cache-dir", type=click.Path(path_type=Path), default=None,
                      help="Descriptor cache folder [default: $LIRIS_CACHE_DIR or ./.liris-cache]."),
         click.option("--workers", type=int, default=1, show_default=True,
@@ -51,6 +60,13 @@ def descriptor_options(func):
     for option in reversed(options):
         func = option(func)
     return func
+
+
+def open_input(sequence: Path, reader_options: dict):
+    """Open SEQUENCE with the reader options gathered by ``descriptor_options``."""
+    from lidar_iris_eval.io import open_sequence
+
+    return open_sequence(sequence, **reader_options)
 
 
 def run_extraction(seq, descriptors: list[Descriptor], cache_dir: Path | None, workers: int,
@@ -69,20 +85,19 @@ def run_extraction(seq, descriptors: list[Descriptor], cache_dir: Path | None, w
 @click.option("--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE, show_default=True,
               help="Scans per chunk (the unit saved as it goes, so a killed run resumes).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
-def command(sequence, descriptor_text, preset, cache_dir, workers, quiet, chunk_size, as_json):
+def command(sequence, descriptor_text, preset, sensor, cache_dir, workers, quiet, chunk_size,
+            as_json, reader_options):
     """Compute descriptors of every scan of SEQUENCE and store them in the cache.
 
     A second run with the same scans, descriptor parameters and liris version
     loads the cache and computes nothing.
     """
-    from lidar_iris_eval.io import open_sequence
-
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
     if chunk_size < 1:
         raise LirisError(f"--chunk-size {chunk_size}", "must be at least 1")
-    descriptors = build_descriptors(descriptor_text, preset)
-    seq = open_sequence(sequence)
+    descriptors = build_descriptors(descriptor_text, preset, sensor)
+    seq = open_input(sequence, reader_options)
     dbs = run_extraction(seq, descriptors, cache_dir, workers, quiet, chunk_size)
     rows = [
         {

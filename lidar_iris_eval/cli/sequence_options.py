@@ -59,3 +59,25 @@ def sequence_options(func):
 def reader_options(values: dict) -> dict:
     """Keep the options that were given, renamed to ``open_sequence`` keywords."""
     return {_KEYWORDS[name]: value for name, value in values.items() if value is not None}
+
+
+def pose_file_options(func):
+    """``--poses`` and ``--calib`` overriding the files found beside the scans.
+
+    They are added to ``reader_options`` (so use this below ``@sequence_options``).
+    """
+
+    @click.option("--poses", "poses_path", type=click.Path(),
+                  help="Pose file (KITTI 3x4 or TUM) instead of the one found with the scans.")
+    @click.option("--calib", "calib_path", type=click.Path(),
+                  help="KITTI calib.txt (Tr) instead of the one found with the scans.")
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        given = {"poses": kwargs.pop("poses_path"), "calib": kwargs.pop("calib_path")}
+        kwargs["reader_options"] = {
+            **kwargs.get("reader_options", {}),
+            **{k: v for k, v in given.items() if v is not None},
+        }
+        return func(*args, **kwargs)
+
+    return wrapper

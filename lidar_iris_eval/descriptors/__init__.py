@@ -24,6 +24,17 @@ _REGISTRY: dict[str, str] = {
 }
 
 
+def register_descriptor(name: str, target: str) -> None:
+    """Register a descriptor class under ``name``, given as ``"module:ClassName"``.
+
+    This is how a new method (or a test double) plugs into extract, eval and
+    bench without touching them; the module is imported on first use.
+    """
+    if ":" not in target:
+        raise ValueError(f"target must be 'module:ClassName', got {target!r}")
+    _REGISTRY[name] = target
+
+
 def available_descriptors() -> list[str]:
     """Names of the registered descriptors whose module is present."""
     names = []
@@ -59,4 +70,10 @@ def get_descriptor(
     return cls(params, preset=preset_name)
 
 
-__all__ = ["Descriptor", "available_descriptors", "descriptor_class", "get_descriptor"]
+__all__ = [
+    "Descriptor",
+    "available_descriptors",
+    "descriptor_class",
+    "get_descriptor",
+    "register_descriptor",
+]
