@@ -1,0 +1,127 @@
+"""``liris bench``: KITTI-scale speed and memory of every descriptor (see lidar_iris_eval.bench)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from lidar_iris_eval.bench import (
+    DEFAULT_DESCRIPTORS,
+    DEFAULT_PRESETS,
+    BenchSettings,
+    run_benchmark,
+    simulated_sequence,
+    summary_rows,
+)
+from lidar_iris_eval.cli.output import echo_table, format_table
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.evaluation.report import json_ready
+from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
+
+DEFAULT_FRAMES = 4541
+
+
+def build_bench_descriptors(text: str, preset: str | None):
+    """``--descriptor`` and ``--preset`` to descriptors; Scan Context defaults to ``exhaustive``."""
+    from lidar_iris_eval.cli.extract_cmd import parse_descriptor_specs
+    from lidar_iris_eval.descriptors import get_descriptor
+
+    return [
+        get_descriptor(name, preset=own or DEFAULT_PRESETS.get(name))
+        for name, own in parse_descriptor_specs(text, preset)
+    ]
+
+
+@click.command("bench")
+@click.option("--frames", type=int, default=None,
+              help=f"Frames of the simulated sequence [default: {DEFAULT_FRAMES}].")
+@click.option("--descriptor", "-d", "descriptor_text", default=DEFAULT_DESCRIPTORS,
+              show_default=True, help="NAME[,NAME...]; NAME:PRESET picks one descriptor's preset.")
+@click.option("--preset", default=None,
+              help="Descriptor preset for all descriptors (default: each one's first; "
+                   "scan-context: exhaustive).")
+@click.option("--sim-preset", default="kitti-scale", show_default=True,
+              help="Simulator preset of the sequence.")
+@click.option("--azimuth-steps", type=int, default=None,
+              help="Simulated azimuth steps per revolution (default: the sim preset's).")
+@click.option("--sequence", type=click.Path(path_type=Path), default=None,
+              help="Benchmark an existing sequence instead of simulating one.")
+@click.option("--work-dir", type=click.Path(path_type=Path), default=None,
+              help="Simulated sequence and descriptor cache [default: <liris cache dir>/bench]; "
+                   "reruns reuse both.")
+@click.option("--json", "json_path", default=None,
+              help="Write the report as JSON to FILE ('-' for stdout).")
+@click.option("--exclude", type=int, default=30, show_default=True,
+              help="Protocol 1 exclusion window E (frames).")
+@click.option("--radius", type=float, default=4.0, show_default=True,
+              help="Ground-truth radius (metres) for the protocols' metrics.")
+@click.option("--skip-protocol1", is_flag=True, help="Do not time protocol 1.")
+@click.option("--skip-protocol2", is_flag=True, help="Do not time protocol 2.")
+@click.option("--loop-pairs", type=int, default=1000, show_default=True,
+              help="Random pairs for the per-pair loop baseline and the equality check (0: skip).")
+@click.option("--kernel-queries", type=int, default=128, show_default=True,
+              help="Queries timed against the whole database for pairs/s.")
+@click.option("--workers", type=int, default=1, show_default=True,
+              help="Extraction processes (per-scan times are clean only with 1).")
+@click.option("--block-pairs", type=int, default=DEFAULT_PAIR_BUDGET, show_default=True,
+              help="Distances per block of the matching driver.")
+@click.option("--in-process", is_flag=True,
+              help="Run the protocols in this process (faster to start; peak memory then "
+                   "includes everything before).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars or status lines.")
+def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence, work_dir,
+            json_path, exclude, radius, skip_protocol1, skip_protocol2, loop_pairs,
+            kernel_queries, workers, block_pairs, in_process, quiet):
+    """Time extraction, the batched kernels and protocols 1/2 of each descriptor.
+
+    By default a 4541-frame sequence (KITTI 00's length) is simulated once into
+    the work folder. Progress goes to stderr, a table to stdout at the end.
+    """
+    from lidar_iris_eval.cache import default_cache_dir
+    from lidar_iris_eval.io import open_sequence
+
+    protocols = tuple(p for p, skip in ((1, skip_protocol1), (2, skip_protocol2)) if not skip)
+    settings = BenchSettings(exclude=exclude, radius=radius, protocols=protocols,
+                             loop_pairs=loop_pairs, kernel_queries=kernel_queries,
+                             workers=workers, isolate=not in_process, pair_budget=block_pairs)
+    descriptors = build_bench_descriptors(descriptor_text, preset)
+    work_dir = work_dir if work_dir is not None else default_cache_dir() / "bench"
+
+    def log(message: str) -> None:
+        if not quiet:
+            click.echo(message, err=True)
+
+    sim = None
+    if sequence is not None:
+        if frames is not None or azimuth_steps is not None:
+            raise LirisError("--frames/--azimuth-steps", "only apply to a simulated sequence, "
+                             "not with --sequence")
+    else:
+        if frames is not None and frames < 2:
+            raise LirisError(f"--frames {frames}", "must be at least 2")
+        log(f"simulated sequence ({sim_preset}) in {work_dir}")
+        sequence, sim_s = simulated_sequence(work_dir, sim_preset, frames or DEFAULT_FRAMES,
+                                             azimuth_steps, progress=not quiet)
+        sim = {"preset": sim_preset, "simulate_s": sim_s, "reused": sim_s == 0.0}
+    seq = open_sequence(sequence)
+    report = run_benchmark(seq, descriptors, work_dir, settings, progress=not quiet, log=log)
+    report["argv"] = [Path(sys.argv[0]).name, *sys.argv[1:]]
+    report["sequence"]["simulated"] = sim
+    rows = summary_rows(report)
+    report = json_ready(report)
+    if json_path == "-":
+        click.echo(json.dumps(report, indent=2))
+        click.echo(format_table(rows), err=True)
+        return
+    if json_path is not None:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps(report, indent=2) + "\n")
+    echo_table(rows)
+    for bar in report["bars"]:
+        verdict = "met" if bar["met"] else "MISSED"
+        click.echo(f"bar: {bar['bar']}: {bar['value']:.4g} (limit {bar['limit']:g}) {verdict}")
+    load = report["load_average"]
+    click.echo(f"load average: start {load['start']}, end {load['end']}")
