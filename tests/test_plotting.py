@@ -386,11 +386,15 @@ def test_iris_figures_from_the_runs_sequence(run_with_scans, tmp_path):
     assert {p.name for p in written} >= {"iris_frame.png", "iris_alignment.png"}
     assert png_size(tmp_path / "iris_frame.png") == (1050, 990)  # 3.5 × 3.3 in
     assert png_size(tmp_path / "iris_alignment.png") == (1050, 780)  # 3.5 × 2.6 in
-    # default frame: the first query with a frame ≤ i − 30 within 4 m; on a
-    # 60-frame circle of radius 15 m, frame 58 (chord 30·sin 6° = 3.1 m from frame 0;
-    # frame 57 is 30·sin 9° = 4.7 m away)
+    # default frame: a revisit query whose LiDAR Iris protocol 1 match is a true
+    # loop, shown against that match (not the first revisit, which may sit at a junction)
     frame_fig, align_fig = build_iris(load_run(run_dir))
-    assert "frame 58" in frame_fig.axes[0].get_title()
+    matches = pd.read_csv(run_dir / "protocol1" / "lidar-iris" / "matches.csv")
+    title = frame_fig.axes[0].get_title()
+    frame = int(title.rsplit("frame ", 1)[1])
+    row = matches[matches["query"] == frame].iloc[0]
+    assert bool(row["is_true"]) and bool(row["is_revisit"])
+    assert f"frame {int(row['match'])}" in align_fig.axes[1].get_title()
     features = [im for ax in frame_fig.axes for im in ax.get_images()
                 if str(im.get_gid()).startswith("feature:")]
     assert len(features) == 8  # 4 scales × real/imaginary

@@ -116,14 +116,17 @@ def build_iris(run: RunResults, frame: int | None = None) -> tuple[Figure | None
 
     Needs the scans (``sequence`` in config.yaml) and the LiDAR Iris module;
     without them both figures are skipped with a warning. ``frame`` defaults
-    to the first revisit query; its partner is the nearest earlier frame
-    allowed by the exclusion window.
+    to an illustrative revisit (see :func:`_default_iris_frame`); its partner
+    is the frame LiDAR Iris matched in protocol 1 when that match is true, else
+    the nearest earlier frame allowed by the exclusion window.
     """
     n = run.n_frames
     if frame is not None and not 0 <= frame < n:
         raise LirisError(f"--frame {frame}", f"frame index out of range (run has {n} frames)")
     gt = run.ground_truth()
     revisits = np.flatnonzero(gt.revisit)
+    if frame is None:
+        frame = _default_iris_frame(run)
     if frame is None:
         frame = int(revisits[0]) if len(revisits) else 0
     sequence = _open_run_sequence(run)
@@ -140,7 +143,9 @@ def build_iris(run: RunResults, frame: int | None = None) -> tuple[Figure | None
     image = lidar_iris.iris_image(sequence[frame], params)
     features, mask = lidar_iris.binary_features(image, params)
     frame_fig = iris_frame_figure(image, features, mask, _wavelengths(params), frame)
-    partner = _revisit_partner(run, frame, gt)
+    partner = _true_iris_match(run, frame)
+    if partner is None:
+        partner = _revisit_partner(run, frame, gt)
     if partner is None:
         warn(f"--frame {frame}", "not a revisit query (no earlier frame within the radius "
              f"and outside E = {gt.exclude}); alignment figure skipped")
@@ -285,6 +290,39 @@ def _wavelengths(params) -> list[float] | None:
     if nscale is None or base is None or mult is None:
         return None
     return [float(base) * float(mult) ** s for s in range(int(nscale))]
+
+
+def _true_iris_matches(run: RunResults):
+    """LiDAR Iris protocol 1 rows whose best match is a true loop, or None."""
+    table = run.matches(IRIS) if IRIS in run.descriptors(1) else None
+    if table is None or table.empty:
+        return None
+    return table[table["is_true"].astype(bool) & table["is_revisit"].astype(bool)]
+
+
+def _default_iris_frame(run: RunResults) -> int | None:
+    """A revisit that shows what the alignment does, like the paper's Fig. 5.
+
+    The first revisit query often sits where a loop closes at a junction,
+    next to a frame seen from a side street: a poor illustration. Prefer a
+    true LiDAR Iris match made in the reverse direction (yaw near 180°), the
+    case Iris handles and M2DP cannot, else the best true match.
+    """
+    rows = _true_iris_matches(run)
+    if rows is None or rows.empty:
+        return None
+    reverse = rows[np.abs(rows["yaw_deg"].to_numpy(dtype=float) - 180.0) < 45.0]
+    pool = reverse if not reverse.empty else rows
+    return int(pool.loc[pool["distance"].idxmin(), "query"])
+
+
+def _true_iris_match(run: RunResults, frame: int) -> int | None:
+    """The frame LiDAR Iris matched to ``frame`` in protocol 1, when it is a true loop."""
+    rows = _true_iris_matches(run)
+    if rows is None:
+        return None
+    hit = rows[rows["query"] == frame]
+    return None if hit.empty else int(hit["match"].iloc[0])
 
 
 def _revisit_partner(run: RunResults, frame: int, gt) -> int | None:
