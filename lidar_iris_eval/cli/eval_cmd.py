@@ -59,9 +59,9 @@ TABLE_COLUMNS = ("protocol", "descriptor", "preset", "ap", "f1_max", "r100p", "e
 @click.option("--block-pairs", type=int, default=DEFAULT_PAIR_BUDGET, show_default=True,
               help="Distances computed per block (bounds memory).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json instead of a table.")
-def command(sequence, protocols, descriptor_text, preset, sensor, cache_dir, workers, quiet,
-            radius, exclude, distance, pose_frame, recall_denominator, candidates, out, overwrite,
-            block_pairs, as_json, reader_options):
+def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_dir, workers,
+            quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates, out,
+            overwrite, block_pairs, as_json, reader_options):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
@@ -79,7 +79,7 @@ def command(sequence, protocols, descriptor_text, preset, sensor, cache_dir, wor
         raise LirisError(f"--candidates {candidates}", "only applies to --protocol 1")
     if candidates is not None and candidates < 1:
         raise LirisError(f"--candidates {candidates}", "must be at least 1")
-    descriptors = build_descriptors(descriptor_text, preset, sensor)
+    descriptors = build_descriptors(descriptor_text, preset, sensor, params)
     if candidates is not None:
         for d in descriptors:
             if not callable(getattr(d, "candidates", None)):

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+import yaml
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.output import echo_json, echo_table
@@ -31,11 +32,33 @@ def parse_descriptor_specs(text: str, preset: str | None) -> list[tuple[str, str
     return specs
 
 
-def build_descriptors(text: str, preset: str | None, sensor: str | None = None) -> list[Descriptor]:
-    """Descriptors from ``--descriptor``, ``--preset`` and ``--sensor``, validated before work."""
+def parse_param_overrides(items: tuple[str, ...], names: list[str]) -> dict[str, dict]:
+    """``("esf.seed=3", ...)`` to ``{"esf": {"seed": 3}}``; values are read as YAML."""
+    overrides: dict[str, dict] = {name: {} for name in names}
+    for item in items:
+        target, sep, text = item.partition("=")
+        name, dot, key = target.strip().rpartition(".")
+        if not sep or not dot or not key:
+            raise LirisError(f"--param {item}", "expected DESCRIPTOR.KEY=VALUE, e.g. esf.seed=3")
+        if name not in overrides:
+            raise LirisError(f"--param {item}", f"{name!r} is not among --descriptor {names}")
+        try:
+            overrides[name][key] = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise LirisError(f"--param {item}", "value is not valid YAML") from None
+    return overrides
+
+
+def build_descriptors(text: str, preset: str | None, sensor: str | None = None,
+                      params: tuple[str, ...] = ()) -> list[Descriptor]:
+    """Descriptors from ``--descriptor``, ``--preset``, ``--sensor`` and ``--param``.
+
+    Everything is validated (names, presets, parameter keys) before any work.
+    """
+    specs = parse_descriptor_specs(text, preset)
+    overrides = parse_param_overrides(params, [name for name, _ in specs])
     return [
-        get_descriptor(name, preset=p, sensor=sensor)
-        for name, p in parse_descriptor_specs(text, preset)
+        get_descriptor(name, preset=p, sensor=sensor, **overrides[name]) for name, p in specs
     ]
 
 
@@ -48,6 +71,8 @@ def descriptor_options(func):
                      help="NAME[,NAME...]; NAME:PRESET picks a preset for one descriptor."),
         click.option("--preset", default=None,
                      help="Descriptor preset for all descriptors (default: each one's first)."),
+        click.option("--param", "params", multiple=True, metavar="NAME.KEY=VALUE",
+                     help="Override one descriptor parameter, e.g. esf.seed=3 (repeatable)."),
         click.option("--sensor", type=click.Choice(["hdl64", "vlp16"]), default="hdl64",
                      show_default=True,
                      help="Sensor-specific preset values (e.g. LiDAR Iris height range)."),
@@ -85,8 +110,8 @@ def run_extraction(seq, descriptors: list[Descriptor], cache_dir: Path | None, w
 @click.option("--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE, show_default=True,
               help="Scans per chunk (the unit saved as it goes, so a killed run resumes).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
-def command(sequence, descriptor_text, preset, sensor, cache_dir, workers, quiet, chunk_size,
-            as_json, reader_options):
+def command(sequence, descriptor_text, preset, params, sensor, cache_dir, workers, quiet,
+            chunk_size, as_json, reader_options):
     """Compute descriptors of every scan of SEQUENCE and store them in the cache.
 
     A second run with the same scans, descriptor parameters and liris version
@@ -96,7 +121,7 @@ def command(sequence, descriptor_text, preset, sensor, cache_dir, workers, quiet
         raise LirisError(f"--workers {workers}", "must be at least 1")
     if chunk_size < 1:
         raise LirisError(f"--chunk-size {chunk_size}", "must be at least 1")
-    descriptors = build_descriptors(descriptor_text, preset, sensor)
+    descriptors = build_descriptors(descriptor_text, preset, sensor, params)
     seq = open_input(sequence, reader_options)
     dbs = run_extraction(seq, descriptors, cache_dir, workers, quiet, chunk_size)
     rows = [

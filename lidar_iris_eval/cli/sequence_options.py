@@ -48,9 +48,10 @@ def sequence_options(func):
                   help="Keep a scan only after the sensor moved this many metres.")
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        kwargs["reader_options"] = reader_options(
-            {name: kwargs.pop(name) for name in _KEYWORDS}
-        )
+        kwargs["reader_options"] = {
+            **kwargs.get("reader_options", {}),
+            **reader_options({name: kwargs.pop(name) for name in _KEYWORDS}),
+        }
         return func(*args, **kwargs)
 
     return wrapper
