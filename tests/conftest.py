@@ -33,3 +33,26 @@ def write_kitti_sequence(
     (root / "calib.txt").write_text("Tr: " + " ".join(f"{v:.12e}" for v in tr[:3].ravel()) + "\n")
     np.savetxt(root / "times.txt", np.arange(len(scans)) * 0.1, fmt="%.6f")
     return root
+
+
+def run_cli(args, capsys) -> tuple[int, str, str]:
+    """Run ``liris`` in-process; return (exit code, stdout, stderr)."""
+    from lidar_iris_eval.cli import main
+
+    try:
+        main([str(a) for a in args])
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def assert_one_line_error(code: int, err: str, *fragments: str) -> None:
+    """Exit code 2, exactly one line on stderr, no traceback, naming each fragment."""
+    assert code == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])

@@ -8,33 +8,11 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import write_kitti_sequence
-
-from lidar_iris_eval.cli import main
-
-
-def run(args, capsys):
-    """Run the CLI in-process; return (exit code, stdout, stderr)."""
-    try:
-        main(args)
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def assert_one_line_error(code, err, *fragments):
-    assert code == 2
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1, err
-    assert "Traceback" not in err
-    for fragment in fragments:
-        assert fragment in lines[0]
+from conftest import assert_one_line_error, run_cli, write_kitti_sequence
 
 
 def test_help_lists_subcommands(capsys):
-    code, out, _ = run(["--help"], capsys)
+    code, out, _ = run_cli(["--help"], capsys)
     assert code == 0
     assert "gt" in out
 
@@ -43,7 +21,7 @@ def test_help_lists_subcommands(capsys):
 def test_gt_reproduces_kitti00_counts(kitti_dir, capsys, exclude, revisits):
     args = ["gt", "--poses", str(kitti_dir / "poses" / "00.txt"), "--radius", "4",
             "--exclude", exclude, "--json"]
-    code, out, _ = run(args, capsys)
+    code, out, _ = run_cli(args, capsys)
     assert code == 0
     data = json.loads(out)
     assert data["frames"] == 4541
@@ -54,9 +32,9 @@ def test_gt_reproduces_kitti00_counts(kitti_dir, capsys, exclude, revisits):
 
 def test_gt_lidar_frame_needs_calib_and_changes_little(kitti_dir, capsys):
     poses = str(kitti_dir / "poses" / "00.txt")
-    code, _, err = run(["gt", "--poses", poses, "--pose-frame", "lidar"], capsys)
+    code, _, err = run_cli(["gt", "--poses", poses, "--pose-frame", "lidar"], capsys)
     assert_one_line_error(code, err, "--pose-frame lidar", "--calib")
-    code, out, _ = run(["gt", "--poses", poses, "--pose-frame", "lidar", "--calib",
+    code, out, _ = run_cli(["gt", "--poses", poses, "--pose-frame", "lidar", "--calib",
                         str(kitti_dir / "calib" / "00.txt"), "--json"], capsys)
     lidar = json.loads(out)["positive_ordered_pairs"]
     # the frames differ by a lever arm of ~0.3 m: a few pairs near 4 m flip, not many
@@ -64,7 +42,7 @@ def test_gt_lidar_frame_needs_calib_and_changes_little(kitti_dir, capsys):
 
 
 def test_gt_on_real_scan_folder_reads_scans(kitti_dir, capsys):
-    code, out, _ = run(["gt", str(kitti_dir / "samples" / "00"), "--check-scans", "--json"],
+    code, out, _ = run_cli(["gt", str(kitti_dir / "samples" / "00"), "--check-scans", "--json"],
                        capsys)
     assert code == 0
     data = json.loads(out)
@@ -84,20 +62,20 @@ def tiny_seq(tmp_path):
 
 
 def test_error_missing_path(tmp_path, capsys):
-    code, _, err = run(["gt", str(tmp_path / "nowhere")], capsys)
+    code, _, err = run_cli(["gt", str(tmp_path / "nowhere")], capsys)
     assert_one_line_error(code, err, "nowhere", "no such file or folder")
 
 
 def test_error_truncated_bin(tiny_seq, capsys):
     path = tiny_seq / "velodyne" / "000002.bin"
     path.write_bytes(path.read_bytes()[:-5])
-    code, _, err = run(["gt", str(tiny_seq), "--check-scans"], capsys)
+    code, _, err = run_cli(["gt", str(tiny_seq), "--check-scans"], capsys)
     assert_one_line_error(code, err, "000002.bin", "not a multiple of 16")
 
 
 def test_error_count_mismatch(tiny_seq, capsys):
     (tiny_seq / "velodyne" / "000003.bin").unlink()
-    code, _, err = run(["gt", str(tiny_seq)], capsys)
+    code, _, err = run_cli(["gt", str(tiny_seq)], capsys)
     assert_one_line_error(code, err, "poses.txt", "4 poses but 3 scans")
 
 
@@ -106,7 +84,7 @@ def test_nan_points_warn_with_count(tiny_seq, capsys):
     data = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
     data[:3, 1] = np.nan
     data.tofile(path)
-    code, out, err = run(["gt", str(tiny_seq), "--check-scans", "--json"], capsys)
+    code, out, err = run_cli(["gt", str(tiny_seq), "--check-scans", "--json"], capsys)
     assert code == 0
     assert "000001.bin: dropped 3 of 40 points with NaN or inf" in err
     assert json.loads(out)["points_min"] == 37
@@ -114,19 +92,19 @@ def test_nan_points_warn_with_count(tiny_seq, capsys):
 
 def test_error_empty_scan(tiny_seq, capsys):
     (tiny_seq / "velodyne" / "000000.bin").write_bytes(b"")
-    code, _, err = run(["gt", str(tiny_seq), "--check-scans"], capsys)
+    code, _, err = run_cli(["gt", str(tiny_seq), "--check-scans"], capsys)
     assert_one_line_error(code, err, "000000.bin", "empty scan")
 
 
 def test_error_malformed_pose_line(tiny_seq, capsys):
     (tiny_seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 x\n" * 4)
-    code, _, err = run(["gt", str(tiny_seq)], capsys)
+    code, _, err = run_cli(["gt", str(tiny_seq)], capsys)
     assert_one_line_error(code, err, "poses.txt:1", "malformed KITTI pose line")
 
 
 @pytest.mark.parametrize("args", [["--distance", "sideways"], ["--exclude", "soon"]])
 def test_error_unknown_option_value(tiny_seq, capsys, args):
-    code, _, err = run(["gt", str(tiny_seq), *args], capsys)
+    code, _, err = run_cli(["gt", str(tiny_seq), *args], capsys)
     assert_one_line_error(code, err, args[1])
 
 

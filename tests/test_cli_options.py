@@ -7,19 +7,7 @@ import json
 import numpy as np
 import pytest
 import yaml
-from conftest import write_kitti_sequence
-
-from lidar_iris_eval.cli import main
-
-
-def run(args, capsys):
-    try:
-        main(args)
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from conftest import run_cli, write_kitti_sequence
 
 
 @pytest.fixture
@@ -34,7 +22,7 @@ def seq(tmp_path):
 
 def _config(tmp_path, seq, capsys, *extra):
     out = tmp_path / "run"
-    code, _, err = run(["eval", str(seq), "--protocol", "2", "--descriptor", "lidar-iris",
+    code, _, err = run_cli(["eval", str(seq), "--protocol", "2", "--descriptor", "lidar-iris",
                         "--cache-dir", str(tmp_path / "cache"), "--out", str(out), "-q",
                         *extra], capsys)
     assert code == 0, err
@@ -62,14 +50,14 @@ def test_param_override_reaches_the_descriptor(tmp_path, seq, capsys):
     ("seed=1", "expected DESCRIPTOR.KEY=VALUE"),
 ])
 def test_bad_param_is_a_one_line_error(seq, capsys, tmp_path, param, fragment):
-    code, _, err = run(["extract", str(seq), "--descriptor", "lidar-iris", "--cache-dir",
+    code, _, err = run_cli(["extract", str(seq), "--descriptor", "lidar-iris", "--cache-dir",
                         str(tmp_path / "c"), "--param", param], capsys)
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2 and len(lines) == 1 and fragment in lines[0]
 
 
 def test_unknown_descriptor_is_a_one_line_error(seq, capsys):
-    code, _, err = run(["extract", str(seq), "--descriptor", "iris-2"], capsys)
+    code, _, err = run_cli(["extract", str(seq), "--descriptor", "iris-2"], capsys)
     assert code == 2 and err.count("\n") == 1
     assert "--descriptor iris-2: unknown descriptor" in err
 
@@ -79,7 +67,7 @@ def test_poses_option_overrides_the_sequence_poses(tmp_path, seq, capsys):
     far = np.loadtxt(seq / "poses.txt")
     far[:, 11] *= 10
     np.savetxt(tmp_path / "far.txt", far)
-    code, out, err = run(["eval", str(seq), "--protocol", "2", "--descriptor", "m2dp",
+    code, out, err = run_cli(["eval", str(seq), "--protocol", "2", "--descriptor", "m2dp",
                           "--poses", str(tmp_path / "far.txt"), "--cache-dir",
                           str(tmp_path / "cache"), "--out", str(tmp_path / "run"), "-q",
                           "--json"], capsys)

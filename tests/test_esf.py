@@ -10,8 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_iris_eval.descriptors import esf as esf_mod
-from lidar_iris_eval.descriptors import get_descriptor
+from lidar_iris_eval.descriptors import get_descriptor, vector_common
 from lidar_iris_eval.descriptors.esf import (
     ESF,
     ESFParams,
@@ -250,7 +249,7 @@ def test_batched_forms_agree_bitwise(monkeypatch):
     db = rng.dirichlet(np.ones(640), size=11).astype(np.float32)
     single = np.array([[d.distance(q, m)[0] for m in db] for q in queries])
     rows = np.array([d.distances(q, db)[0] for q in queries])
-    monkeypatch.setattr(esf_mod, "_BLOCK_BYTES", 4 * 11 * 640 * 8)  # blocks of 4 queries
+    monkeypatch.setattr(vector_common, "BLOCK_BYTES", 4 * 11 * 640 * 8)  # blocks of 4 queries
     pair, yaws = d.pairwise(queries, db)
     assert np.array_equal(single, rows) and np.array_equal(single, pair)
     assert np.isnan(yaws).all() and np.isnan(d.distance(queries[0], db[0])[1])

@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from conftest import assert_one_line_error, run_cli
 from test_protocols import two_pass_sequence
 
 from lidar_iris_eval import __version__
-from lidar_iris_eval.cli import main
 from lidar_iris_eval.descriptors import _REGISTRY
 from lidar_iris_eval.io import open_sequence
 
@@ -33,25 +33,6 @@ def seq_dir(tmp_path):
     return two_pass_sequence(tmp_path / "seq", n_per_pass=12)
 
 
-def run(args, capsys):
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def assert_one_line_error(code, err, *fragments):
-    assert code == 2, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1, err
-    assert "Traceback" not in err
-    for fragment in fragments:
-        assert fragment in lines[0], lines[0]
-
-
 def eval_args(seq_dir, tmp_path, *extra):
     return ["eval", seq_dir, "--protocol", "1", "--protocol", "2", "-d", "toy,toy-asym",
             "--exclude", "5", "--cache-dir", tmp_path / "cache", "--out", tmp_path / "run",
@@ -59,7 +40,7 @@ def eval_args(seq_dir, tmp_path, *extra):
 
 
 def test_eval_writes_the_documented_run_folder(seq_dir, tmp_path, capsys):
-    code, out, err = run(eval_args(seq_dir, tmp_path), capsys)
+    code, out, err = run_cli(eval_args(seq_dir, tmp_path), capsys)
     assert code == 0, err
     run_dir = tmp_path / "run"
     n = 24
@@ -114,13 +95,13 @@ def test_eval_writes_the_documented_run_folder(seq_dir, tmp_path, capsys):
 
 
 def test_existing_run_needs_overwrite(seq_dir, tmp_path, capsys):
-    assert run(eval_args(seq_dir, tmp_path), capsys)[0] == 0
+    assert run_cli(eval_args(seq_dir, tmp_path), capsys)[0] == 0
     marker = tmp_path / "run" / "metrics.json"
     before = marker.read_text()
-    code, _, err = run(eval_args(seq_dir, tmp_path), capsys)
+    code, _, err = run_cli(eval_args(seq_dir, tmp_path), capsys)
     assert_one_line_error(code, err, str(tmp_path / "run"), "--overwrite")
     assert marker.read_text() == before
-    code, _, err = run(eval_args(seq_dir, tmp_path, "--overwrite", "--recall-denominator",
+    code, _, err = run_cli(eval_args(seq_dir, tmp_path, "--overwrite", "--recall-denominator",
                                  "accepted"), capsys)
     assert code == 0, err
     config = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
@@ -135,7 +116,7 @@ def test_existing_run_needs_overwrite(seq_dir, tmp_path, capsys):
     (["-d", "m2dp", "--preset", "nonexistent"], ["--preset nonexistent"]),
 ])
 def test_bad_input_is_one_line_exit_2(seq_dir, tmp_path, capsys, args, fragments):
-    code, _, err = run(["eval", seq_dir, "--protocol", "1", "--out", tmp_path / "r",
+    code, _, err = run_cli(["eval", seq_dir, "--protocol", "1", "--out", tmp_path / "r",
                         "--cache-dir", tmp_path / "c", *args], capsys)
     assert_one_line_error(code, err, *fragments)
     assert not (tmp_path / "r").exists()
@@ -143,12 +124,13 @@ def test_bad_input_is_one_line_exit_2(seq_dir, tmp_path, capsys, args, fragments
 
 def test_missing_sequence_is_one_line_exit_2(tmp_path, capsys):
     for command in (["eval", "--protocol", "1"], ["extract"]):
-        code, _, err = run([command[0], tmp_path / "missing", *command[1:], "-d", "toy"], capsys)
+        args = [command[0], tmp_path / "missing", *command[1:], "-d", "toy"]
+        code, _, err = run_cli(args, capsys)
         assert_one_line_error(code, err, str(tmp_path / "missing"), "no such file")
 
 
 def test_candidates_run_uses_the_descriptor_retrieval(seq_dir, tmp_path, capsys):
-    code, _, err = run(["eval", seq_dir, "--protocol", "1", "-d", "toy-retrieval",
+    code, _, err = run_cli(["eval", seq_dir, "--protocol", "1", "-d", "toy-retrieval",
                         "--candidates", "2", "--exclude", "5", "--out", tmp_path / "r",
                         "--cache-dir", tmp_path / "c", "-q", "--json"], capsys)
     assert code == 0, err
@@ -160,12 +142,12 @@ def test_candidates_run_uses_the_descriptor_retrieval(seq_dir, tmp_path, capsys)
 
 def test_extract_then_eval_reuses_the_cache(seq_dir, tmp_path, capsys):
     cache = tmp_path / "cache"
-    code, out, err = run(["extract", seq_dir, "-d", "toy", "--cache-dir", cache, "-q",
+    code, out, err = run_cli(["extract", seq_dir, "-d", "toy", "--cache-dir", cache, "-q",
                           "--json"], capsys)
     assert code == 0, err
     first = json.loads(out)["results"][0]
     assert first["from_cache"] is False and first["scans"] == 24
-    code, out, _ = run(["extract", seq_dir, "-d", "toy", "--cache-dir", cache, "-q", "--json"],
+    code, out, _ = run_cli(["extract", seq_dir, "-d", "toy", "--cache-dir", cache, "-q", "--json"],
                        capsys)
     assert json.loads(out)["results"][0]["from_cache"] is True
     assert len(list(cache.glob("*.npz"))) == 1
@@ -194,10 +176,10 @@ def simulated(tmp_path_factory):
 @pytest.mark.parametrize("extra", [[], ["--distance", "planar", "--pose-frame", "lidar"]])
 def test_protocol2_counts_equal_liris_gt(simulated, tmp_path, capsys, extra):
     seq_dir = simulated
-    code, out, err = run(["gt", seq_dir, "--radius", "4", "--json", *extra], capsys)
+    code, out, err = run_cli(["gt", seq_dir, "--radius", "4", "--json", *extra], capsys)
     assert code == 0, err
     gt = json.loads(out)
-    code, out, err = run(["eval", seq_dir, "--protocol", "2", "-d", "toy", "--out",
+    code, out, err = run_cli(["eval", seq_dir, "--protocol", "2", "-d", "toy", "--out",
                           tmp_path / "r", "--cache-dir", tmp_path / "c", "-q", "--json",
                           *extra], capsys)
     assert code == 0, err
@@ -216,13 +198,13 @@ def test_failed_run_leaves_no_folder_and_keeps_the_old_one(seq_dir, tmp_path, ca
     def boom(*args, **kwargs):
         raise LirisError("disk", "full")
 
-    assert run(eval_args(seq_dir, tmp_path), capsys)[0] == 0
+    assert run_cli(eval_args(seq_dir, tmp_path), capsys)[0] == 0
     before = (tmp_path / "run" / "metrics.json").read_text()
     monkeypatch.setattr(eval_cmd, "write_protocol2", boom)
-    code, _, err = run(eval_args(seq_dir, tmp_path, "--overwrite"), capsys)
+    code, _, err = run_cli(eval_args(seq_dir, tmp_path, "--overwrite"), capsys)
     assert_one_line_error(code, err, "disk: full")
     assert (tmp_path / "run" / "metrics.json").read_text() == before
-    code, _, err = run([*eval_args(seq_dir, tmp_path)[:-3], "--out", tmp_path / "new", "-q"],
+    code, _, err = run_cli([*eval_args(seq_dir, tmp_path)[:-3], "--out", tmp_path / "new", "-q"],
                        capsys)
     assert_one_line_error(code, err, "disk: full")
     assert not (tmp_path / "new").exists()

@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_iris_eval.descriptors import get_descriptor
-from lidar_iris_eval.descriptors import m2dp as m2dp_mod
+from lidar_iris_eval.descriptors import get_descriptor, vector_common
 from lidar_iris_eval.descriptors.m2dp import (
     M2DP,
     M2DPParams,
@@ -155,7 +154,7 @@ def test_batched_forms_agree_bitwise(monkeypatch):
     db = rng.normal(size=(13, 192))
     single = np.array([[desc.distance(q, m)[0] for m in db] for q in queries])
     rows = np.array([desc.distances(q, db)[0] for q in queries])
-    monkeypatch.setattr(m2dp_mod, "_BLOCK_BYTES", 3 * 13 * 192 * 8)  # blocks of 3 queries
+    monkeypatch.setattr(vector_common, "BLOCK_BYTES", 3 * 13 * 192 * 8)  # blocks of 3 queries
     pair, yaws = desc.pairwise(queries, db)
     assert np.array_equal(single, rows) and np.array_equal(single, pair)
     assert np.isnan(yaws).all() and np.isnan(desc.distance(queries[0], db[0])[1])

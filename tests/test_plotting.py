@@ -17,9 +17,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import write_kitti_sequence
+from conftest import run_cli, write_kitti_sequence
 
-from lidar_iris_eval.cli import main
 from lidar_iris_eval.errors import LirisError, LirisWarning
 from lidar_iris_eval.plotting import (
     build_affinity,
@@ -149,20 +148,10 @@ def image(fig, gid: str):
     return found[0]
 
 
-def cli(args, capsys):
-    try:
-        main(args)
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
 # ---- all figures, files and sizes ----------------------------------------------------------
 def test_plot_writes_every_figure_at_fixed_size(run_dir, tmp_path, capsys):
     out = tmp_path / "figs"
-    code, stdout, stderr = cli(["plot", str(run_dir), "--out", str(out)], capsys)
+    code, stdout, stderr = run_cli(["plot", str(run_dir), "--out", str(out)], capsys)
     assert code == 0, stderr
     written = [Path(p) for p in stdout.split()]
     assert sorted(p.name for p in written) == ["affinity.png", "pr_protocol1.png",
@@ -419,18 +408,18 @@ def test_not_a_results_dir_is_a_one_line_error(tmp_path, capsys, case):
         target.mkdir()
     elif case == "a-file":
         target.write_text("x")
-    code, _, err = cli(["plot", str(target)], capsys)
+    code, _, err = run_cli(["plot", str(target)], capsys)
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert code == 2 and len(lines) == 1 and "Traceback" not in err
     assert lines[0].startswith("liris: error: ") and str(target) in lines[0]
 
 
 def test_cli_options_are_checked(run_dir, tmp_path, capsys):
-    code, _, err = cli(["plot", str(run_dir), "--format", "gif"], capsys)
+    code, _, err = run_cli(["plot", str(run_dir), "--format", "gif"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1
-    code, _, err = cli(["plot", str(run_dir), str(run_dir)], capsys)
+    code, _, err = run_cli(["plot", str(run_dir), str(run_dir)], capsys)
     assert code == 2 and "--compare" in err
-    code, _, err = cli(["plot", str(run_dir), "--frame", "999", "--out", str(tmp_path)], capsys)
+    code, _, err = run_cli(["plot", str(run_dir), "--frame", "999", "--out", str(tmp_path)], capsys)
     assert code == 2 and "--frame 999" in err
     with pytest.raises(LirisError, match="at least two"):
         plot_compare([run_dir], tmp_path)
@@ -442,7 +431,7 @@ def test_plots_a_real_liris_eval_run(run_with_scans, tmp_path, capsys):
     run_dir, _ = run_with_scans
     seq = load_run(run_dir).sequence_path
     out = tmp_path / "eval"
-    code, _, err = cli(["eval", str(seq), "--protocol", "1", "--protocol", "2", "--descriptor",
+    code, _, err = run_cli(["eval", str(seq), "--protocol", "1", "--protocol", "2", "--descriptor",
                         "lidar-iris", "--out", str(out), "--cache-dir",
                         str(tmp_path / "cache"), "--quiet"], capsys)
     assert code == 0, err

@@ -64,7 +64,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks
+from lidar_iris_eval.errors import LirisError
 
 GRID = 64
 HALF = GRID // 2
@@ -76,7 +77,6 @@ WEIGHTS.setflags(write=False)
 MIN_HERON = np.float32(0.001)
 #: give up after this many draws per requested sample (degenerate clouds)
 _MAX_DRAWS_PER_SAMPLE = 50
-_BLOCK_BYTES = 32 * 2**20
 _STRIDES = np.array([GRID * GRID, GRID, 1], dtype=np.int64)
 
 
@@ -310,16 +310,7 @@ class ESF(Descriptor):
 
     def compute(self, points: np.ndarray) -> np.ndarray:
         """Describe one scan: ``(N, 3)`` points to a ``(640,)`` float32 histogram."""
-        pts = np.asarray(points)
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise LirisError("points", f"expected an (N, 3) array, got shape {pts.shape}")
-        pts = pts[:, :3]
-        finite = np.isfinite(pts).all(axis=1)
-        if not finite.all():
-            warn("points", f"dropped {int((~finite).sum())} non-finite point(s)")
-            pts = pts[finite]
-        if len(pts) < 3:
-            raise LirisError("points", f"ESF needs at least 3 finite points, got {len(pts)}")
+        pts = finite_xyz(points, minimum=3, dtype=np.asarray(points).dtype, method="ESF")
         rng = np.random.default_rng(self.params.seed)
         return esf_histogram(pts, self.params.samples, rng)
 
@@ -334,13 +325,4 @@ class ESF(Descriptor):
 
     def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(Q, M)`` L1 distances, in blocks of queries to bound memory."""
-        queries = np.asarray(queries)
-        database = np.asarray(database)
-        n_q, n_m = len(queries), len(database)
-        out = np.empty((n_q, n_m), dtype=np.float64)
-        width = database[0].size if n_m else 1
-        block = max(1, _BLOCK_BYTES // max(1, 8 * n_m * width))
-        for start in range(0, n_q, block):
-            q = queries[start : start + block]
-            out[start : start + len(q)] = l1_rows(q[:, None, :], database[None, :, :])
-        return out, np.full((n_q, n_m), np.nan)
+        return pairwise_blocks(l1_rows, queries, database)

@@ -55,14 +55,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks
+from lidar_iris_eval.errors import LirisError
 
 _SVD_SIGNS = ("positive", "lapack")
 #: points per chunk in the projection loop: keeps the (chunk, planes) work
 #: arrays inside the CPU cache, which is what makes the NumPy path fast.
 _CHUNK = 2048
-#: bytes of temporary difference array allowed per block in ``pairwise``
-_BLOCK_BYTES = 32 * 2**20
 
 
 @dataclass(frozen=True)
@@ -243,7 +242,7 @@ class M2DP(Descriptor):
 
     def compute(self, points: np.ndarray) -> np.ndarray:
         """Describe one scan: ``(N, 3)`` points to a ``(p*q + l*t,)`` float64 vector."""
-        pts = _finite_xyz(points, minimum=3)
+        pts = finite_xyz(points, minimum=3, method="M2DP")
         signature = signature_matrix(pca_align(pts), self.params)
         return descriptor_from_signature(signature, self.params.svd_sign)
 
@@ -258,37 +257,4 @@ class M2DP(Descriptor):
 
     def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(Q, M)`` L2 distances, in blocks of queries to bound memory."""
-        return _pairwise_blocks(l2_rows, queries, database)
-
-
-def _pairwise_blocks(kernel, queries: np.ndarray, database: np.ndarray):
-    """Apply a row kernel to blocks of queries; shared by the L1/L2 baselines."""
-    queries = np.asarray(queries)
-    database = np.asarray(database)
-    n_q, n_m = len(queries), len(database)
-    out = np.empty((n_q, n_m), dtype=np.float64)
-    width = database[0].size if n_m else 1
-    block = max(1, _BLOCK_BYTES // max(1, 8 * n_m * width))
-    for start in range(0, n_q, block):
-        q = queries[start : start + block]
-        out[start : start + len(q)] = kernel(q[:, None, :], database[None, :, :])
-    return out, np.full((n_q, n_m), np.nan)
-
-
-def _finite_xyz(points: np.ndarray, minimum: int) -> np.ndarray:
-    """The ``(N, 3)`` float64 xyz of ``points`` with non-finite rows dropped.
-
-    Raises LirisError for a wrong shape or fewer than ``minimum`` finite
-    points; warns when rows are dropped.
-    """
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise LirisError("points", f"expected an (N, 3) array, got shape {pts.shape}")
-    pts = np.asarray(pts[:, :3], dtype=np.float64)
-    finite = np.isfinite(pts).all(axis=1)
-    if not finite.all():
-        warn("points", f"dropped {int((~finite).sum())} non-finite point(s)")
-        pts = pts[finite]
-    if len(pts) < minimum:
-        raise LirisError("points", f"need at least {minimum} finite points, got {len(pts)}")
-    return pts
+        return pairwise_blocks(l2_rows, queries, database)
