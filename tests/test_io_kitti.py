@@ -132,3 +132,19 @@ def test_poses_beside_sequences_folder_are_found(tmp_path):
     (target / "poses.txt").rename(dataset / "poses" / "07.txt")
     seq = open_sequence(target)
     assert len(seq) == 3 and seq.name == "07"
+
+
+def test_opening_4541_scans_reads_none_of_them(tmp_path):
+    """Opening only lists files: every scan here is truncated, yet opening succeeds."""
+    root = tmp_path / "big"
+    (root / "velodyne").mkdir(parents=True)
+    for i in range(4541):
+        (root / "velodyne" / f"{i:06d}.bin").write_bytes(b"\0" * 7)  # not a multiple of 16
+    poses = np.tile(np.eye(4)[:3].ravel(), (4541, 1))
+    np.savetxt(root / "poses.txt", poses, fmt="%.1f")
+    (root / "calib.txt").write_text("Tr: " + " ".join(["1", "0", "0", "0", "0", "1", "0", "0",
+                                                       "0", "0", "1", "0"]) + "\n")
+    seq = open_sequence(root)
+    assert len(seq) == 4541 and seq.poses.shape == (4541, 4, 4)
+    with pytest.raises(LirisError, match="004540.bin"):
+        seq.scan(4540)
