@@ -21,8 +21,8 @@ Per descriptor the report holds
 * **protocol 1** (exhaustive, each query ``i >= E`` against every ``j <= i - E``)
   and **protocol 2** (the full affinity), each run end to end (ground truth,
   matching, scoring) in a fresh spawned process, so that each pass starts cold
-  and the process's ``ru_maxrss`` is the honest peak memory of that pass
-  (descriptors, affinity and scoring included).
+  and the process's peak resident memory (:func:`peak_rss_bytes`) is that of
+  the pass alone (interpreter, descriptors, affinity and scoring included).
 
 Numbers are wall-clock on whatever machine runs this, and the load average
 is recorded next to them: on a shared machine they are upper bounds.
@@ -413,7 +413,22 @@ class MatchingJob:
     progress: bool
 
 
-def _maxrss_bytes() -> int:
+def peak_rss_bytes() -> int:
+    """Peak resident memory of this process's current address space, in bytes.
+
+    On Linux this is ``VmHWM`` from ``/proc/self/status``, not ``ru_maxrss``:
+    the kernel carries a parent's high-water mark into ``ru_maxrss`` across
+    fork + exec, so a spawned child reports at least its parent's peak (with
+    a 500 MB parent, a fresh child showed ru_maxrss 517 MB but VmHWM 29 MB).
+    Elsewhere ``ru_maxrss`` is the best available figure.
+    """
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(rss if sys.platform == "darwin" else rss * 1024)
 
@@ -422,8 +437,8 @@ def run_matching(job: MatchingJob) -> dict[str, Any]:
     """Run one protocol end to end and measure it (in whatever process calls this).
 
     Wall time covers ground truth, every distance, and scoring; ``match_s`` is
-    the distance computation alone. ``peak_rss_bytes`` is this process's
-    ``ru_maxrss``, which in a fresh process is the pass's peak memory.
+    the distance computation alone. ``peak_rss_bytes`` is this process's peak
+    resident memory (:func:`peak_rss_bytes`), in a fresh process the pass's own.
     """
     from tqdm import tqdm
 
@@ -436,7 +451,7 @@ def run_matching(job: MatchingJob) -> dict[str, Any]:
     start = time.perf_counter()
     job.descriptor.pairwise(descs[:2], descs[:2])  # load compiled kernels
     warmup_s = time.perf_counter() - start
-    rss_loaded = _maxrss_bytes()
+    rss_loaded = peak_rss_bytes()
     n = len(descs)
     rows = n if job.protocol == 2 else max(0, n - job.exclude)
     load = os.getloadavg()
@@ -464,7 +479,7 @@ def run_matching(job: MatchingJob) -> dict[str, Any]:
         "load_s": load_s,
         "warmup_s": warmup_s,
         "rss_after_load_bytes": rss_loaded,
-        "peak_rss_bytes": _maxrss_bytes(),
+        "peak_rss_bytes": peak_rss_bytes(),
         "load_average_at_start": list(load),
         "metrics": {k: result.metrics[k] for k in keys if k in result.metrics},
     }
@@ -472,7 +487,7 @@ def run_matching(job: MatchingJob) -> dict[str, Any]:
 
 def run_isolated(job: MatchingJob) -> dict[str, Any]:
     """:func:`run_matching` in a freshly spawned process (spawn, not fork: a forked
-    child would inherit this process's memory and its ``ru_maxrss``)."""
+    child would share this process's pages and count them as its own)."""
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
         return pool.submit(run_matching, job).result()
@@ -501,7 +516,7 @@ def bench_descriptor(seq, desc: Descriptor, cache: DescriptorCache, positions: n
         f"x {len(descs)} frames)")
     entry["kernel"] = kernel_throughput(desc, descs, settings.kernel_queries,
                                         settings.kernel_repeats)
-    if settings.loop_pairs:
+    if settings.loop_pairs and len(descs) > 1:
         rng = np.random.default_rng(settings.seed)
         pairs = sample_pairs(len(descs), settings.loop_pairs, settings.loop_pool, rng)
         say(f"{desc.name}: per-pair loops on {len(pairs)} random pairs")
@@ -522,6 +537,14 @@ def bench_descriptor(seq, desc: Descriptor, cache: DescriptorCache, positions: n
     finally:
         path.unlink(missing_ok=True)
     return entry
+
+
+def points_per_scan(seq, samples: int = 20) -> dict[str, Any]:
+    """Median point count of ``samples`` evenly spaced scans: extraction time
+    scales with it (a real KITTI HDL-64E scan has about 120k points)."""
+    frames = np.unique(np.linspace(0, len(seq) - 1, min(samples, len(seq))).astype(int))
+    counts = [len(seq[int(i)]) for i in frames]
+    return {"points_per_scan_median": float(np.median(counts)), "points_sampled_scans": len(frames)}
 
 
 def machine_info() -> dict[str, Any]:
@@ -566,7 +589,7 @@ def run_benchmark(seq, descriptors: list[Descriptor], work_dir: str | os.PathLik
         "machine": machine_info(),
         "load_average": {"start": list(load_start), "end": list(os.getloadavg())},
         "sequence": {"name": seq.name, "path": str(seq.path), "frames": len(seq),
-                     "pose_frame": frame},
+                     "pose_frame": frame, **points_per_scan(seq)},
         "settings": dataclasses.asdict(settings),
         "descriptors": entries,
     }

@@ -16,9 +16,11 @@ from click.testing import CliRunner
 
 from lidar_iris_eval.bench import (
     BenchSettings,
+    MatchingJob,
     esf_reference,
     m2dp_reference,
     run_benchmark,
+    run_isolated,
     sample_pairs,
     scan_context_reference,
     simulated_sequence,
@@ -123,3 +125,21 @@ def test_cli_json_on_existing_sequence_and_bad_options(sequence_dir):
     assert entry["loop"]["batched_equals_single"]
     bad = runner.invoke(cli, ["bench", "--sequence", str(path), "--frames", "10"])
     assert isinstance(bad.exception, LirisError)
+
+
+def test_isolated_peak_memory_is_the_childs_own(tmp_path):
+    """A fresh process must not report its parent's memory as its own peak.
+
+    The parent holds 600 MB; the child matches 50 small M2DP descriptors, which
+    needs far less than that (the interpreter and imports are ~100 MB).
+    """
+    held = np.ones(600 * 2**20 // 8)  # touched, so resident
+    rng = np.random.default_rng(2)
+    path = tmp_path / "m2dp.npy"
+    np.save(path, rng.normal(size=(50, 192)))
+    job = MatchingJob(get_descriptor("m2dp"), str(path), rng.uniform(0, 100, (50, 3)), "lidar",
+                      2, 5, 4.0, 1 << 20, False)
+    result = run_isolated(job)
+    assert held[-1] == 1.0
+    assert result["ordered_pairs"] == 50 * 49
+    assert 0 < result["peak_rss_bytes"] < 400 * 2**20
