@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_iris_eval.bench import lidar_iris_reference
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.descriptors import lidar_iris as li
 
@@ -81,26 +82,6 @@ def median_ms(fn, repeats: int) -> tuple[float, float]:
     return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu))
 
 
-def straightforward(a, b, fa, fb, params) -> float:
-    """The per-pair baseline: NumPy phase correlation, np.roll on unpacked bool maps."""
-    (t1, m1), (t2, m2) = fa, fb
-    f1 = a["spec_re"].astype(np.float64) + 1j * a["spec_im"].astype(np.float64)
-    f2 = b["spec_re"].astype(np.float64) + 1j * b["spec_im"].astype(np.float64)
-    x = (f1 * np.conj(f2)).sum(axis=0)
-    z = np.divide(x, np.abs(x), out=np.zeros_like(x), where=np.abs(x) > 0)
-    n = params.sectors
-    k = np.arange(1, len(z) + 1)[:, None]
-    surface = np.real(z[:, None] * np.exp(-2j * np.pi * k * np.arange(n)[None, :] / n)).sum(0)
-    centre = int(np.argmax(surface))
-    best = np.nan
-    for shift in range(centre - params.shift_window, centre + params.shift_window + 1):
-        mask = np.roll(m1, shift, axis=1) | m2
-        d = ((np.roll(t1, shift, axis=1) ^ t2) & ~mask).sum() / (~mask).sum()
-        if np.isnan(best) or d < best:
-            best = d
-    return float(best)
-
-
 def bench_extraction(desc, scans) -> None:
     p = desc.params
     scan = max(scans, key=len)
@@ -140,7 +121,8 @@ def bench_kernel(desc, db, baseline_pairs: int, threads: int) -> None:
         feats[i] = li.binary_features(db[i]["image"], p)
     t, c = time.perf_counter(), time.process_time()
     slow = [
-        straightforward(db[i], db[j], feats[i], feats[j], p) for i, j in zip(qi, dj, strict=True)
+        lidar_iris_reference(db[i], db[j], feats[i], feats[j], p)
+        for i, j in zip(qi, dj, strict=True)
     ]
     wall_slow = (time.perf_counter() - t) / baseline_pairs
     cpu_slow = (time.process_time() - c) / baseline_pairs

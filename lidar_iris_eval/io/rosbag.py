@@ -37,7 +37,7 @@ import numpy as np
 from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.io.poses import quaternion_to_matrix, read_pose_file
 from lidar_iris_eval.io.scans import Scan, clean_points
-from lidar_iris_eval.io.sequence import Sequence
+from lidar_iris_eval.io.sequence import Sequence, hash_file_samples
 from lidar_iris_eval.io.timematch import DEFAULT_TOLERANCE, match_poses, select_keyframes
 
 INSTALL_HINT = 'reading ROS bags needs the rosbags package: pip install "lidar_iris_eval[rosbag]"'
@@ -53,7 +53,6 @@ STAMP_SOURCES = ("header", "bag")
 POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 CLOUD_FIELDS = ("x", "y", "z", "intensity", "ring", "time")
 NS = 1_000_000_000
-FINGERPRINT_SAMPLE_BYTES = 4096
 
 
 @dataclass
@@ -101,14 +100,7 @@ class BagSequence(Sequence):
         """Hash of the bag files' names, sizes and ends, the topic and the kept messages."""
         digest = hashlib.sha256()
         files = sorted(self.path.iterdir()) if self.path.is_dir() else [self.path]
-        for path in files:
-            size = path.stat().st_size
-            digest.update(f"{path.name}:{size};".encode())
-            with open(path, "rb") as handle:
-                digest.update(handle.read(FINGERPRINT_SAMPLE_BYTES))
-                if size > 2 * FINGERPRINT_SAMPLE_BYTES:
-                    handle.seek(size - FINGERPRINT_SAMPLE_BYTES)
-                    digest.update(handle.read())
+        hash_file_samples(digest, files)
         digest.update(self.topic.encode())
         digest.update(np.ascontiguousarray(self.message_times, dtype=np.int64).tobytes())
         return digest.hexdigest()[:16]

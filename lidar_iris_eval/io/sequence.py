@@ -113,15 +113,20 @@ class Sequence(SequenceABC):
         thousands of scans, and unlike modification times it survives copying.
         """
         digest = hashlib.sha256()
-        for path in self.scan_paths:
-            size = path.stat().st_size
-            digest.update(f"{path.name}:{size};".encode())
-            with open(path, "rb") as handle:
-                digest.update(handle.read(FINGERPRINT_SAMPLE_BYTES))
-                if size > 2 * FINGERPRINT_SAMPLE_BYTES:
-                    handle.seek(size - FINGERPRINT_SAMPLE_BYTES)
-                    digest.update(handle.read())
+        hash_file_samples(digest, self.scan_paths)
         return digest.hexdigest()[:16]
+
+
+def hash_file_samples(digest, paths: list[Path]) -> None:
+    """Feed each file's name, size and first and last 4 KiB into ``digest``."""
+    for path in paths:
+        size = path.stat().st_size
+        digest.update(f"{path.name}:{size};".encode())
+        with open(path, "rb") as handle:
+            digest.update(handle.read(FINGERPRINT_SAMPLE_BYTES))
+            if size > 2 * FINGERPRINT_SAMPLE_BYTES:
+                handle.seek(size - FINGERPRINT_SAMPLE_BYTES)
+                digest.update(handle.read())
 
 
 def _frame_id(path: Path, default: int) -> int:
