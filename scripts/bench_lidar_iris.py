@@ -136,7 +136,8 @@ def bench_kernel(desc, db, baseline_pairs: int, threads: int) -> None:
         f"straightforward per-pair NumPy loop: {1e6 * wall_slow:9.1f} us/pair wall, "
         f"{1e6 * cpu_slow:9.1f} CPU-us/pair ({baseline_pairs} pairs)"
     )
-    for th in sorted({1, min(threads, numba.config.NUMBA_NUM_THREADS)}):
+    threads = min(threads, numba.config.NUMBA_NUM_THREADS)  # e.g. under taskset
+    for th in sorted({1, threads}):
         numba.set_num_threads(th)
         t, c = time.perf_counter(), time.process_time()
         desc.pairwise(block, db)
