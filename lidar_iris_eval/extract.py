@@ -106,13 +106,17 @@ def _source_hash(module_file: str) -> str:
 
 
 def cache_key(seq, descriptor: Descriptor, fingerprint: str | None = None) -> CacheKey:
-    """The cache key of ``descriptor`` on ``seq`` (parameters, version, code, scan fingerprint)."""
+    """The cache key of ``descriptor`` on ``seq`` (parameters, version, code, scan fingerprint).
+
+    The version includes NumPy's: ESF draws its triplets from NumPy's random
+    generator, whose streams NumPy does not promise to keep across releases.
+    """
     return CacheKey.build(
         sequence=seq.name,
         fingerprint=fingerprint if fingerprint is not None else seq.fingerprint(),
         descriptor=descriptor.name,
         params=params_dict(descriptor.params),
-        version=__version__,
+        version=f"{__version__}+numpy-{np.__version__}",
         n_scans=len(seq),
         code=descriptor_code_hash(descriptor),
     )

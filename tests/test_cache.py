@@ -52,6 +52,7 @@ def test_key_depends_on_params_version_and_scans(seq, tmp_path):
     assert cache_key(seq, ToyHist(ToyParams(bins=8))).digest() != base.digest()
     other_version = CacheKey(**{**base.__dict__, "version": "9.9.9"})
     assert other_version.digest() != base.digest()
+    assert base.version.endswith(f"+numpy-{np.__version__}")  # ESF's random stream
     # change one scan's bytes: the fingerprint and the key change, and the cache recomputes
     cache = DescriptorCache(tmp_path / "cache")
     extract(seq, ToyHist(), cache=cache)
