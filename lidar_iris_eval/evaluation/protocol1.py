@@ -174,6 +174,14 @@ def _direction_breakdown(matches, is_true, is_revisit, is_reverse, tau) -> dict:
     return out
 
 
+def stacked_descriptors(descriptors, positions: np.ndarray) -> np.ndarray:
+    """The stacked array of ``descriptors`` (an array or a DescriptorDB), one per position."""
+    descriptors = getattr(descriptors, "descriptors", descriptors)
+    if len(positions) != len(descriptors):
+        raise LirisError("positions", f"{len(positions)} positions for {len(descriptors)} scans")
+    return descriptors
+
+
 def protocol1(
     descriptor: Descriptor,
     descriptors: np.ndarray,
@@ -195,10 +203,8 @@ def protocol1(
     ``candidates=K`` uses the descriptor's own retrieval (``candidates``
     method) instead of the exhaustive search.
     """
-    descriptors = getattr(descriptors, "descriptors", descriptors)
     check_recall_denominator(recall_denominator)
-    if len(positions) != len(descriptors):
-        raise LirisError("positions", f"{len(positions)} positions for {len(descriptors)} scans")
+    descriptors = stacked_descriptors(descriptors, positions)
     gt = compute_ground_truth(positions, radius, exclude, distance, frame)
     if candidates is not None:
         matches = retrieval_matches(descriptor, descriptors, exclude, candidates, progress)

@@ -22,6 +22,7 @@ from lidar_iris_eval.evaluation.protocol1 import (
     Protocol1Result,
     check_recall_denominator,
     score_protocol1,
+    stacked_descriptors,
 )
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET, Affinity, affinity_matrix
 
@@ -79,9 +80,7 @@ def protocol2(
 
     ``descriptors`` is the stacked array or a :class:`~lidar_iris_eval.extract.DescriptorDB`.
     """
-    descriptors = getattr(descriptors, "descriptors", descriptors)
-    if len(positions) != len(descriptors):
-        raise LirisError("positions", f"{len(positions)} positions for {len(descriptors)} scans")
+    descriptors = stacked_descriptors(descriptors, positions)
     gt = compute_ground_truth(positions, radius, 1, distance, frame)
     affinity, _ = affinity_matrix(descriptor, descriptors, None, pair_budget, progress)
     return score_protocol2(affinity, gt)
@@ -107,10 +106,8 @@ def protocols_1_and_2(
     pass, so they equal those of :func:`~lidar_iris_eval.evaluation.protocol1.protocol1`.
     Returns ``(Protocol1Result, Protocol2Result)``.
     """
-    descriptors = getattr(descriptors, "descriptors", descriptors)
     check_recall_denominator(recall_denominator)
-    if len(positions) != len(descriptors):
-        raise LirisError("positions", f"{len(positions)} positions for {len(descriptors)} scans")
+    descriptors = stacked_descriptors(descriptors, positions)
     gt = compute_ground_truth(positions, radius, exclude, distance, frame)
     affinity, matches = affinity_matrix(descriptor, descriptors, exclude, pair_budget, progress)
     p1 = score_protocol1(matches, positions, gt, recall_denominator, forward)
