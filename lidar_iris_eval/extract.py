@@ -80,10 +80,12 @@ class DescriptorDB:
 def descriptor_code_hash(descriptor: Descriptor) -> str:
     """SHA-256 of the source files that can change ``descriptor``'s output.
 
-    That is the descriptor's own module and, for the built-in descriptors, every
-    module of the ``lidar_iris_eval.descriptors`` package (kernels live in
-    sibling modules). Coarse on purpose: editing any descriptor invalidates all
-    built-in caches, which is cheap compared with serving stale numbers.
+    A method is a sub-package of ``lidar_iris_eval.descriptors`` (its
+    descriptor, kernels and helpers side by side), so the hash covers every
+    ``.py`` file of the package folder that holds the descriptor's module,
+    sub-folders included, plus the shared modules directly in
+    ``descriptors/`` (base class, common helpers). A descriptor defined
+    elsewhere (a plug-in or a test double) hashes its own module's folder.
     """
     module = sys.modules.get(type(descriptor).__module__)
     own = getattr(module, "__file__", None)
@@ -94,13 +96,20 @@ def descriptor_code_hash(descriptor: Descriptor) -> str:
 def _source_hash(module_file: str) -> str:
     """Hash once per process, so the key describes the code this process runs
     even if a file is edited while it works."""
-    files = {Path(module_file)} if module_file else set()
-    package = Path(__file__).resolve().parent / "descriptors"
-    if module_file and Path(module_file).parent == package:
-        files.update(p.resolve() for p in package.glob("*.py"))
+    files: set[Path] = set()
+    if module_file:
+        own = Path(module_file)
+        package = Path(__file__).resolve().parent / "descriptors"
+        folder = own.parent
+        if folder.parent == package:  # a method's sub-package: all of it
+            files.update(p.resolve() for p in folder.rglob("*.py"))
+            files.update(p.resolve() for p in package.glob("*.py"))
+        elif folder == package:
+            files.update(p.resolve() for p in package.glob("*.py"))
+        files.add(own)
     digest = hashlib.sha256()
     for path in sorted(files):
-        digest.update(path.name.encode())
+        digest.update(str(path.name).encode())
         digest.update(path.read_bytes())
     return digest.hexdigest()[:16]
 

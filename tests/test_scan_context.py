@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from lidar_iris_eval.config import descriptor_preset_values
-from lidar_iris_eval.descriptors import _scan_context_kernels as kernels
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.descriptors.scan_context import (
     ScanContext,
     ScanContextParams,
+    kernels,
     polar_angle_deg,
     polar_context,
     ring_key,

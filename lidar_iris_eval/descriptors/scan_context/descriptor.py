@@ -48,7 +48,7 @@ Conventions and differences from the authors' code
   bins start at -1000 and are reset to 0 if untouched, so the value of a
   bin is ``max(float32(z + 2))``.
 * **Cosines** are computed from unit columns quantised to ``2**-16``
-  (see :mod:`._scan_context_kernels`) so that single-pair and batched
+  (see :mod:`.kernels`) so that single-pair and batched
   distances are bitwise identical; ``d`` differs from the C++ double result by
   at most about 2e-6 (``d(a, a)`` is ~2e-6 rather than 0).
 * **Symmetry.** With every shift tried, ``d(a, b) == d(b, a)`` bitwise (the
@@ -88,8 +88,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lidar_iris_eval.descriptors import _scan_context_kernels as kernels
 from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.descriptors.scan_context import kernels
 from lidar_iris_eval.errors import LirisError, warn
 
 RING_KEYS = ("mean", "occupancy")

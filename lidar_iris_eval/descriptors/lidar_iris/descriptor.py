@@ -71,7 +71,7 @@ imaginary-part words), the mask ``M`` (``(words, sectors)``, shared by the real
 and imaginary maps; padding bits set) and the row spectra used for phase
 correlation (``spec_re``/``spec_im``, ``(rings, K)`` float32). All comparisons
 run through one compiled kernel
-(:mod:`lidar_iris_eval.descriptors.lidar_iris_kernels`), so ``distance``,
+(:mod:`lidar_iris_eval.descriptors.lidar_iris.kernels`), so ``distance``,
 ``distances`` and ``pairwise`` agree bitwise, and the pair order is
 canonicalised so that ``d(a, b) == d(b, a)`` exactly (``symmetric = True``).
 The kernel needs numba.
@@ -85,8 +85,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from lidar_iris_eval.descriptors import lidar_iris_kernels as kernels
 from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.descriptors.lidar_iris import kernels
 from lidar_iris_eval.errors import LirisError, warn
 
 _MODES = {"same": kernels.MODE_SAME, "reverse": kernels.MODE_REVERSE, "both": kernels.MODE_BOTH}

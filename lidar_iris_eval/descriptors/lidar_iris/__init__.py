@@ -1,0 +1,36 @@
+"""LiDAR Iris (Wang et al., IROS 2020): iris image, log-Gabor binary maps, masked Hamming distance.
+
+The descriptor lives in :mod:`.descriptor`; the numba kernels beside it in :mod:`.kernels`.
+"""
+
+from lidar_iris_eval.descriptors.lidar_iris.descriptor import (
+    LidarIris,
+    LidarIrisParams,
+    align,
+    binary_features,
+    compare_blocks,
+    describe_image,
+    descriptor_dtype,
+    estimated_shift,
+    iris_image,
+    log_gabor_response,
+    pack_features,
+    row_spectra,
+    unpack_features,
+)
+
+__all__ = [
+    "LidarIris",
+    "LidarIrisParams",
+    "align",
+    "binary_features",
+    "compare_blocks",
+    "describe_image",
+    "descriptor_dtype",
+    "estimated_shift",
+    "iris_image",
+    "log_gabor_response",
+    "pack_features",
+    "row_spectra",
+    "unpack_features",
+]
