@@ -20,7 +20,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import click
 
 from lidar_iris_eval import __version__
-from lidar_iris_eval.errors import LirisError, LirisWarning
+from lidar_iris_eval.errors import LirisError, LirisWarning, os_error, register_flags
 
 EXIT_BAD_INPUT = 2
 
@@ -47,7 +47,8 @@ def _register_commands() -> None:
     """Attach every subcommand module that exists; each defines ``command``."""
     import importlib
 
-    for module_name in ("gt", "simulate", "extract", "eval", "plot", "bench"):
+    for module_name in ("gt", "simulate", "extract", "eval", "plot", "bench", "show", "compare",
+                        "report"):
         try:
             module = importlib.import_module(f"lidar_iris_eval.cli.{module_name}_cmd")
         except ModuleNotFoundError as err:
@@ -60,11 +61,34 @@ def _register_commands() -> None:
 _register_commands()
 
 
+def _register_reader_flags() -> None:
+    """Let library errors name reader keywords by the flags that set them.
+
+    ``open_sequence(lidar_frame=True)`` is ``--lidar-frame-poses`` here, so an
+    error about it says so (see :func:`lidar_iris_eval.errors.option`).
+    """
+    from lidar_iris_eval.cli.sequence_options import _KEYWORDS
+
+    keywords = {**_KEYWORDS, "poses_path": "poses", "calib_path": "calib"}
+    flags: dict[str, str] = {}
+    for command in cli.commands.values():
+        for param in command.params:
+            if isinstance(param, click.Option) and param.name in keywords:
+                flags[keywords[param.name]] = max(param.opts, key=len)
+    register_flags(flags)
+
+
+_register_reader_flags()
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point.
 
     Usage errors from click (an unknown option value, a missing argument) are
-    folded into one line and exit code 2, like every other bad input.
+    folded into one line and exit code 2, like every other bad input. So are
+    operating-system errors (a read-only or full disk, a path under a file):
+    they name the path through :func:`lidar_iris_eval.errors.os_error`, and
+    every writer is atomic, so nothing half-written is left behind.
     """
     try:
         cli.main(args=argv, prog_name="liris", standalone_mode=False)
@@ -75,5 +99,19 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(f"liris: error: {err.format_message()}", err=True)
         sys.exit(EXIT_BAD_INPUT)
     except LirisError as err:
-        click.echo(f"liris: error: {err}", err=True)
-        sys.exit(EXIT_BAD_INPUT)
+        _fail(err)
+    except BrokenPipeError:
+        # stdout closed early (``liris ... | head``): not an error of the user's input.
+        sys.stderr.close()
+        sys.exit(141)
+    except OSError as err:
+        _fail(os_error(err))
+    except UnicodeDecodeError as err:
+        _fail(LirisError(None, f"a file is not UTF-8 text ({err.reason} at byte {err.start})"))
+
+
+def _fail(err: LirisError) -> None:
+    """One line on stderr, exit code 2."""
+    text = " ".join(str(err).split())  # one line, even if a message carries a newline
+    click.echo(f"liris: error: {text}", err=True)
+    sys.exit(EXIT_BAD_INPUT)

@@ -1,0 +1,52 @@
+"""``liris compare RUN_A RUN_B ...``: metrics side by side, differences, convention changes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.runs import FORMATS, load_run, render_table
+from lidar_iris_eval.runs.compare import (
+    convention_differences,
+    count_differences,
+    metric_comparison,
+    plot_pr_overlay,
+    run_labels,
+)
+
+
+@click.command("compare")
+@click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--format", "fmt", type=click.Choice(FORMATS), default="table", show_default=True,
+              help="Output format of the tables.")
+@click.option("--plot", "plot_out", type=click.Path(path_type=Path), default=None,
+              help="Also write the PR curves of all runs overlaid to this image (.png/.pdf/.svg).")
+def command(runs, fmt, plot_out):
+    """Compare the metrics of two or more run folders.
+
+    Each later run's difference to the first is shown per metric, and every
+    convention or setting that differs between the runs (radius, exclusion,
+    recall denominator, scans, descriptor parameters, ...) is listed, since
+    such a difference changes what the numbers mean.
+    """
+    if len(runs) < 2:
+        raise LirisError("compare", "give at least two run folders")
+    loaded = [load_run(r) for r in runs]
+    labels = run_labels(loaded)
+    rows = metric_comparison(loaded)
+    columns = ["protocol", "descriptor", "preset", "metric", *labels,
+               *[f"{lab} - {labels[0]}" for lab in labels[1:]]]
+    click.echo(render_table(rows, fmt, columns=columns, summarize=False))
+    n_diff = count_differences(rows, labels)
+    click.echo("")
+    click.echo(f"{n_diff} metric value(s) differ from {labels[0]}")
+    differences = convention_differences(loaded)
+    if differences:
+        click.echo("conventions and settings that differ (the numbers are not like for like):")
+        click.echo(render_table(differences, fmt, columns=["setting", *labels], summarize=False))
+    else:
+        click.echo("conventions and settings: identical")
+    if plot_out is not None:
+        click.echo(f"PR curves: {plot_pr_overlay(loaded, plot_out)}")

@@ -1,0 +1,31 @@
+"""``liris show RUN``: a finished run's metrics table and conventions, nothing recomputed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from lidar_iris_eval.runs import FORMATS, conventions_lines, load_run, render_table
+
+
+@click.command("show")
+@click.argument("run", type=click.Path(path_type=Path))
+@click.option("--format", "fmt", type=click.Choice(FORMATS), default="table", show_default=True,
+              help="Aligned table, or a Markdown / LaTeX / CSV table for a paper.")
+@click.option("--no-conventions", is_flag=True,
+              help="Print the table only (e.g. to paste it or pipe the CSV).")
+def command(run, fmt, no_conventions):
+    """Print the metrics table and the conventions of the run folder RUN.
+
+    The table is the one `liris eval` printed for that run (same columns and
+    rounding); CSV keeps full precision.
+    """
+    loaded = load_run(run)
+    click.echo(render_table(loaded.rows, fmt))
+    if no_conventions:
+        return
+    click.echo("")
+    prefix = {"markdown": "- ", "latex": "% ", "csv": "# "}.get(fmt, "")
+    for line in conventions_lines(loaded.conventions, loaded.config):
+        click.echo(prefix + line)
