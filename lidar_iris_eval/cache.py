@@ -191,7 +191,8 @@ class DescriptorCache:
                 start, stop = int(a), int(b)
             except ValueError:
                 continue
-            if all(len(v) == stop - start for v in arrays.values()):
+            per_scan = [v for name, v in arrays.items() if not _flat_values(name)]
+            if all(len(v) == stop - start for v in per_scan):
                 chunks[(start, stop)] = arrays
         return chunks
 
@@ -207,3 +208,9 @@ class DescriptorCache:
             path.unlink(missing_ok=True)
             return None
         return arrays
+
+
+def _flat_values(name: str) -> bool:
+    """Flat arrays of variable-size features (see descriptors/features.py) are not
+    one row per scan; every other stored array is."""
+    return name.startswith("ragged:") and name.endswith(":values")

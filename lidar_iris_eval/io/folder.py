@@ -18,6 +18,9 @@ Scan times come from ``times=`` / ``times.txt`` (folder or parent), else from
 file names that are stamps (``1565012345.123456.pcd``, 19-digit ns …). When
 the pose and scan counts differ, timestamped (TUM) poses are matched to the
 scan times by interpolation; otherwise the counts must be equal.
+
+Per-point labels (SemanticKITTI ``.label``, one per scan, same file stem) are
+read from a ``labels/`` folder inside the scan folder when it exists.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
-from lidar_iris_eval.io.sequence import Sequence, check_counts, list_scans
+from lidar_iris_eval.io.sequence import Sequence, check_counts, find_labels, list_scans
 from lidar_iris_eval.io.timematch import (
     DEFAULT_TOLERANCE,
     match_poses,
@@ -104,15 +107,19 @@ def open_folder(
         lidar_poses = camera_to_lidar(raw_poses, tr)
         camera_poses = raw_poses
 
+    kept_paths = [scan_paths[i] for i in keep]
+    labels_dir = folder / "labels"
     chosen = select_keyframes(lidar_poses[:, :3, 3], every, min_distance)
     keep = keep[chosen]
     return Sequence(
         name=folder.name,
         path=folder,
-        scan_paths=[scan_paths[i] for i in keep],
+        scan_paths=kept_paths,
         poses=lidar_poses[chosen],
         camera_poses=None if camera_poses is None else camera_poses[chosen],
         times=None if scan_times is None else scan_times[keep],
+        label_paths=find_labels(labels_dir, kept_paths),
+        labels_dir=labels_dir,
         calib=tr,
         frame_ids=_frame_ids(scan_paths, keep) if frame_ids is None else frame_ids[keep],
     )

@@ -89,7 +89,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.descriptors.scan_context import kernels
+from lidar_iris_eval.descriptors.scan_context import kernels, pair, voxel
 from lidar_iris_eval.errors import LirisError, warn
 
 RING_KEYS = ("mean", "occupancy")
@@ -168,6 +168,29 @@ class ScanContextParams:
 
 def voxel_downsample(points: np.ndarray, leaf: float) -> np.ndarray:
     """Replace the points of each ``leaf``-sized voxel by their mean (PCL ``VoxelGrid``).
+
+    Runs the compiled hash-table pass of :mod:`.voxel` (no sort of the points);
+    :func:`voxel_downsample_numpy` is the sort-based reference it equals bitwise
+    (tested), and the fallback for clouds with absurd outliers.
+
+    Parameters
+    ----------
+    points : (N, 3) float32
+    leaf : float
+        Voxel edge in metres; faces lie at integer multiples of ``leaf``.
+
+    Returns
+    -------
+    (V, 3) float32 centroids, ordered by voxel (x index, then y, then z).
+    """
+    if len(points) == 0:
+        return np.empty((0, 3), dtype=np.float32)
+    out = voxel.voxel_centroids(points, leaf)
+    return voxel_downsample_numpy(points, leaf) if out is None else out
+
+
+def voxel_downsample_numpy(points: np.ndarray, leaf: float) -> np.ndarray:
+    """Sort-based NumPy voxel grid: the reference of :func:`voxel_downsample`.
 
     Parameters
     ----------
@@ -310,8 +333,11 @@ class ScanContext(Descriptor):
             # A voxel with a point beyond max_radius + its diagonal lies wholly
             # outside max_radius, so its centroid would be dropped anyway.
             reach = p.max_radius + p.voxel_size * math.sqrt(2.0) + 0.01
-            x, y = xyz[:, 0].astype(np.float64), xyz[:, 1].astype(np.float64)
-            xyz = voxel_downsample(xyz[x * x + y * y <= reach * reach], p.voxel_size)
+            cloud = voxel.voxel_centroids(xyz, p.voxel_size, reach) if len(xyz) else None
+            if cloud is None:  # empty, or absurd outliers: the sort-based route
+                x, y = xyz[:, 0].astype(np.float64), xyz[:, 1].astype(np.float64)
+                cloud = voxel_downsample_numpy(xyz[x * x + y * y <= reach * reach], p.voxel_size)
+            xyz = cloud
         sc = polar_context(np.ascontiguousarray(xyz), p)
         out = np.zeros((), dtype=self.dtype)
         out["sc"] = sc
@@ -356,9 +382,26 @@ class ScanContext(Descriptor):
         return dist[0], yaw[0]
 
     def distance(self, query: np.ndarray, candidate: np.ndarray) -> tuple[float, float]:
-        """Distance and yaw (degrees) between two descriptors."""
-        dist, yaw = self.pairwise(np.asarray(query).reshape(1), np.asarray(candidate).reshape(1))
-        return float(dist[0, 0]), float(yaw[0, 0])
+        """Distance and yaw (degrees) between two descriptors.
+
+        Compared directly by :mod:`.pair` (microseconds, the online use); the
+        numbers are bitwise those of :meth:`pairwise` (tested).
+        """
+        q, c = np.asarray(query), np.asarray(candidate)
+        if q.dtype is not self.dtype or c.dtype is not self.dtype:  # fast path: no copies
+            q, c = self._records(q, "query"), self._records(c, "candidate")
+        if q.size != 1 or c.size != 1:
+            raise LirisError("distance", "expects one query and one candidate descriptor")
+        q, c = q.reshape(()), c.reshape(())
+        p = self.params
+        dist, shift = pair.pair_distance(
+            q["sc"], c["sc"], q["sector_key"], c["sector_key"], p.divide_by == "sectors",
+            -1 if p.search == "exhaustive" else p.search_radius,
+        )
+        n = p.num_sectors
+        # shift_to_yaw on one value, in Python floats (the same double arithmetic)
+        yaw = ((n - shift) % n) * (360.0 / n) if shift >= 0 else math.nan
+        return float(dist), float(yaw)
 
     # ------------------------------------------------------------------ retrieval
     def candidates(
