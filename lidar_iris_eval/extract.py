@@ -3,7 +3,8 @@
 ::
 
     db = extract(seq, get_descriptor("m2dp"), cache=DescriptorCache(".liris-cache"))
-    db.descriptors      # (N, ...) array (record array for multi-part descriptors)
+    db.descriptors      # (N, ...) array (record array for multi-part descriptors),
+                        # or RaggedFeatures when compute returns variable-size feature sets
     db.extract_s        # (N,) seconds spent in descriptor.compute per scan
 
 Scans are processed in fixed chunks (``chunk_size`` scans). With a cache each
@@ -14,6 +15,11 @@ with the same inputs loads that file and computes nothing.
 ``workers > 1`` spreads chunks over a local process pool. Timing is the wall
 time of ``descriptor.compute`` in the worker (reading the scan is timed
 separately), so it is comparable across worker counts only on an idle machine.
+
+Each scan goes through :meth:`Descriptor.describe`: point descriptors get the
+bare points (``seq[i]``, as always), methods that read labels, intensity or
+objects get ``seq.scan(i)``. Their inputs are checked against the sequence
+before any work (:meth:`Descriptor.check_inputs`).
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from lidar_iris_eval import __version__
 from lidar_iris_eval.cache import CacheKey, DescriptorCache
 from lidar_iris_eval.config import params_dict
 from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.descriptors.features import RaggedFeatures
 from lidar_iris_eval.errors import LirisError
 
 DEFAULT_CHUNK_SIZE = 50
@@ -49,7 +56,8 @@ class DescriptorDB:
     ----------
     descriptor, preset, params : the descriptor's registry name, preset and
         full parameter dict.
-    descriptors : ``(N, ...)`` stacked output of ``compute``.
+    descriptors : ``(N, ...)`` stacked output of ``compute``, or
+        :class:`RaggedFeatures` when ``compute`` returns feature sets.
     extract_s, read_s : ``(N,)`` seconds per scan spent in ``compute`` and in
         reading the scan file (from the run that computed them).
     sequence, fingerprint : the sequence name and content fingerprint.
@@ -60,7 +68,7 @@ class DescriptorDB:
     descriptor: str
     preset: str
     params: dict[str, Any]
-    descriptors: np.ndarray
+    descriptors: np.ndarray | RaggedFeatures
     extract_s: np.ndarray
     read_s: np.ndarray
     sequence: str
@@ -85,7 +93,8 @@ def descriptor_code_hash(descriptor: Descriptor) -> str:
     ``.py`` file of the package folder that holds the descriptor's module,
     sub-folders included, plus the shared modules directly in
     ``descriptors/`` (base class, common helpers). A descriptor defined
-    elsewhere (a plug-in or a test double) hashes its own module's folder.
+    elsewhere hashes its own package folder when its module sits in a package
+    (a plug-in sub-package: helpers included), else its own file.
     """
     module = sys.modules.get(type(descriptor).__module__)
     own = getattr(module, "__file__", None)
@@ -106,6 +115,8 @@ def _source_hash(module_file: str) -> str:
             files.update(p.resolve() for p in package.glob("*.py"))
         elif folder == package:
             files.update(p.resolve() for p in package.glob("*.py"))
+        elif (folder / "__init__.py").is_file():  # a plug-in package outside ours
+            files.update(p.resolve() for p in folder.rglob("*.py"))
         files.add(own)
     digest = hashlib.sha256()
     for path in sorted(files):
@@ -162,6 +173,7 @@ def extract(
         raise ValueError("chunk_size must be positive")
     if cache is not None and not isinstance(cache, DescriptorCache):
         cache = DescriptorCache(cache)
+    descriptor.check_inputs(seq)
     fingerprint = seq.fingerprint()
     key = cache_key(seq, descriptor, fingerprint)
     meta = dict(
@@ -196,18 +208,34 @@ def extract(
 
 
 def _complete(arrays: dict[str, np.ndarray], n: int) -> bool:
-    names = {"descriptors", "extract_s", "read_s"}
-    return names <= set(arrays) and all(len(arrays[k]) == n for k in names)
+    names = {"extract_s", "read_s"}
+    if not (names <= set(arrays) and all(len(arrays[k]) == n for k in names)):
+        return False
+    if RaggedFeatures.in_arrays(arrays):
+        return RaggedFeatures.n_scans_in(arrays) == n
+    return "descriptors" in arrays and len(arrays["descriptors"]) == n
 
 
-def _split(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    return {k: arrays[k] for k in ("descriptors", "extract_s", "read_s")}
+def _split(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    out: dict[str, Any] = {k: arrays[k] for k in ("extract_s", "read_s")}
+    if RaggedFeatures.in_arrays(arrays):
+        out["descriptors"] = RaggedFeatures.from_arrays(arrays)
+    else:
+        out["descriptors"] = arrays["descriptors"]
+    return out
 
 
 def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
     parts = [chunks[r] for r in ranges]
     if not parts:
         raise LirisError(name, "the sequence has no scans")
+    times = {k: np.concatenate([p[k] for p in parts]) for k in ("extract_s", "read_s")}
+    if RaggedFeatures.in_arrays(parts[0]):
+        try:
+            features = RaggedFeatures.concatenate([RaggedFeatures.from_arrays(p) for p in parts])
+        except ValueError as err:
+            raise RuntimeError(f"{name}.compute: inconsistent feature sets: {err}") from None
+        return {**features.to_arrays(), **times}
     first = parts[0]["descriptors"]
     for part in parts[1:]:
         d = part["descriptors"]
@@ -216,8 +244,7 @@ def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
                 f"{name}.compute returned inconsistent outputs: {first.dtype}{first.shape[1:]} "
                 f"vs {d.dtype}{d.shape[1:]}"
             )
-    names = ("descriptors", "extract_s", "read_s")
-    return {k: np.concatenate([p[k] for p in parts]) for k in names}
+    return {"descriptors": np.concatenate([p["descriptors"] for p in parts]), **times}
 
 
 def _compute_chunks(seq, descriptor, todo, workers, bar) -> Iterable:
@@ -251,19 +278,33 @@ def _compute_range(seq, descriptor, a: int, b: int, tick=None):
     two-argument constructor does not survive pickling).
     """
     outputs, extract_s, read_s = [], np.empty(b - a), np.empty(b - a)
+    wants_scan = descriptor.wants_scan()
     try:
         for k, i in enumerate(range(a, b)):
             t0 = time.perf_counter()
-            points = seq[i]
-            t1 = time.perf_counter()
-            outputs.append(np.asarray(descriptor.compute(points)))
+            if wants_scan:
+                scan = seq.scan(i)
+                t1 = time.perf_counter()
+                out = descriptor.describe(scan)
+            else:  # bare points, exactly as compute(points) always got them
+                points = seq[i]
+                t1 = time.perf_counter()
+                out = descriptor.compute(points)
+            outputs.append(out if isinstance(out, dict) else np.asarray(out))
             t2 = time.perf_counter()
             read_s[k], extract_s[k] = t1 - t0, t2 - t1
             if tick is not None:
                 tick(1)
     except LirisError as err:
         return ("error", err.source, err.problem)
-    return {"descriptors": np.stack(outputs), "extract_s": extract_s, "read_s": read_s}
+    times = {"extract_s": extract_s, "read_s": read_s}
+    if outputs and isinstance(outputs[0], dict):
+        if not all(isinstance(o, dict) for o in outputs):
+            raise RuntimeError(f"{descriptor.name}.compute returned a feature set for some "
+                               "scans and an array for others")
+        features = RaggedFeatures.from_list(outputs, f"{descriptor.name}.compute")
+        return {**features.to_arrays(), **times}
+    return {"descriptors": np.stack(outputs), **times}
 
 
 def _raise_errors(result):

@@ -17,14 +17,90 @@ Conventions
   descriptor does not estimate yaw.
 * ``distances(query, database)`` and ``pairwise(queries, database)`` are the
   batched forms. They must return exactly the numbers of ``distance``.
+* ``inputs`` names what a method reads from a scan: ``"points"`` (default),
+  ``"intensity"``, ``"labels"`` (SemanticKITTI per-point labels) or
+  ``"objects"`` (an object layout's scans). The pipeline checks the sequence
+  provides them before any work and calls :meth:`Descriptor.describe`, which
+  hands ``compute`` the bare points (global point descriptors) or the whole
+  scan (anything that reads more, or sets ``takes_scan``).
+* ``compute`` may also return a *feature set*, ``dict[str, np.ndarray]``,
+  whose arrays may differ in their first dimension between scans (segments,
+  objects, keypoints). The pipeline keeps them as
+  :class:`~lidar_iris_eval.descriptors.features.RaggedFeatures`.
+* **Two-stage methods** (``two_stage = True``) have no all-pairs distance:
+  :meth:`prepare` builds a database once, :meth:`retrieve` proposes candidates
+  among the allowed frames, :meth:`verify` checks them geometrically and
+  returns a :class:`Verification` (score, 4x4 pose, inliers). A global
+  descriptor may implement :meth:`retrieve` too (Scan Context's ring-key
+  search); protocol 1 then offers ``candidates=K``.
+
+Pose convention
+---------------
+A relative pose ``T`` (4x4) of a match ``(query i, candidate j)`` maps points
+of the candidate's LiDAR frame into the query's LiDAR frame:
+``p_i = T @ p_j``; the ground truth is ``inv(P_i) @ P_j`` for LiDAR-frame
+poses ``P``. For a yaw-only estimate with ``yaw_deg`` as defined above (the
+candidate's *points* are the query's turned CCW by ``yaw_deg``), ``T`` is a
+rotation by ``-yaw_deg`` about +z with unknown (NaN) translation; see
+:func:`yaw_to_pose`.
 """
 
 from __future__ import annotations
 
 import abc
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+
+from lidar_iris_eval.errors import LirisError
+
+#: every input a method may declare in ``Descriptor.inputs``
+KNOWN_INPUTS = frozenset({"points", "intensity", "labels", "objects"})
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Result of verifying ``k`` candidates of one query.
+
+    Attributes
+    ----------
+    score : ``(k,)`` float64; smaller = more similar (as a distance);
+        ``nan`` or ``inf`` = rejected.
+    pose : ``(k, 4, 4)`` float64, each mapping points of the candidate's LiDAR
+        frame into the query's; NaN entries where unknown (e.g. translation of
+        a yaw-only estimate).
+    inliers : ``(k,)`` int64 inlier count of the geometric check (0 if none).
+    """
+
+    score: np.ndarray
+    pose: np.ndarray
+    inliers: np.ndarray
+
+    def __post_init__(self) -> None:
+        k = len(self.score)
+        if np.shape(self.pose) != (k, 4, 4) or np.shape(self.inliers) != (k,):
+            raise ValueError(
+                f"Verification of {k} candidates needs pose (k, 4, 4) and inliers (k,), got "
+                f"{np.shape(self.pose)} and {np.shape(self.inliers)}"
+            )
+
+
+def yaw_to_pose(yaw_deg: np.ndarray) -> np.ndarray:
+    """``(..., 4, 4)`` poses of yaw estimates (base-class convention), translation NaN.
+
+    The candidate's points are the query's turned CCW by ``yaw_deg``, so the
+    map candidate -> query turns them back: ``Rz(-yaw_deg)``. NaN yaw gives an
+    all-NaN rotation.
+    """
+    yaw = np.deg2rad(np.asarray(yaw_deg, dtype=np.float64))
+    c, s = np.cos(-yaw), np.sin(-yaw)
+    T = np.zeros((*yaw.shape, 4, 4))
+    T[..., 0, 0], T[..., 0, 1], T[..., 1, 0], T[..., 1, 1] = c, -s, s, c
+    T[..., 2, 2] = np.where(np.isnan(yaw), np.nan, 1.0)
+    T[..., :3, 3] = np.nan
+    T[..., 3, 3] = 1.0
+    return T
 
 
 class Descriptor(abc.ABC):
@@ -37,6 +113,12 @@ class Descriptor(abc.ABC):
     #: True when ``distance(a, b) == distance(b, a)`` by construction, so
     #: all-pairs evaluation may compute each unordered pair once.
     symmetric: ClassVar[bool] = False
+    #: what ``compute`` reads from a scan (subset of :data:`KNOWN_INPUTS`)
+    inputs: ClassVar[frozenset[str]] = frozenset({"points"})
+    #: pass the whole scan to ``compute`` even if ``inputs`` is only points
+    takes_scan: ClassVar[bool] = False
+    #: True for retrieval + verification methods without an all-pairs distance
+    two_stage: ClassVar[bool] = False
 
     def __init__(self, params: Any = None, preset: str = "custom"):
         self.params = self.params_type() if params is None else params
@@ -47,11 +129,95 @@ class Descriptor(abc.ABC):
 
     @abc.abstractmethod
     def compute(self, points: np.ndarray) -> np.ndarray:
-        """Describe one scan: ``(N, 3)`` float32 points to a fixed-shape array."""
+        """Describe one scan: ``(N, 3)`` float32 points to a fixed-shape array.
 
-    @abc.abstractmethod
+        Methods with ``takes_scan`` or inputs beyond points receive the whole
+        scan instead, and may return a feature set (``dict`` of arrays).
+        """
+
     def distance(self, query: np.ndarray, candidate: np.ndarray) -> tuple[float, float]:
-        """Distance and yaw (degrees, or nan) between two descriptors."""
+        """Distance and yaw (degrees, or nan) between two descriptors.
+
+        Every global descriptor implements it; a two-stage method has none.
+        """
+        raise NotImplementedError(f"{self.name} has no all-pairs distance (two-stage method)")
+
+    @classmethod
+    def wants_scan(cls) -> bool:
+        """True when ``compute`` takes the whole scan rather than bare points."""
+        return cls.takes_scan or bool(set(cls.inputs) - {"points"})
+
+    def describe(self, scan: Any) -> Any:
+        """Describe one scan as the pipeline does: the right input to :meth:`compute`.
+
+        ``scan`` is an :class:`~lidar_iris_eval.io.scans.Scan` (or an object
+        layout's scan). Global point descriptors get ``scan.points``, so their
+        numbers are exactly those of ``compute(points)``.
+        """
+        if not self.wants_scan():
+            return self.compute(scan.points)
+        for name in ("intensity", "labels"):
+            if name in self.inputs and getattr(scan, name, None) is None:
+                raise LirisError(self.name, f"needs per-point {name}, but the scan has none")
+        return self.compute(scan)
+
+    def check_inputs(self, sequence: Any) -> None:
+        """Raise a LirisError naming where the missing inputs would be.
+
+        ``sequence.provides`` (a set of input names) says what its scans
+        carry; sequences without it provide points only.
+        """
+        unknown = set(self.inputs) - KNOWN_INPUTS
+        if unknown:
+            raise ValueError(f"{self.name}.inputs has unknown names {sorted(unknown)}")
+        provides = set(getattr(sequence, "provides", {"points", "intensity"}))
+        missing = sorted(set(self.inputs) - provides)
+        if not missing:
+            return
+        where = getattr(sequence, "labels_dir", None) if missing == ["labels"] else None
+        source = where if where is not None else getattr(sequence, "path", self.name)
+        what = " and ".join(missing)
+        detail = (f"no SemanticKITTI .label files in {where}" if where is not None
+                  else f"this input has no {what}")
+        raise LirisError(source, f"{self.name} needs per-point {what}; {detail}")
+
+    # ------------------------------------------------------------ two-stage interface
+
+    def prepare(self, features: Any) -> Any:
+        """The database for :meth:`retrieve`/:meth:`verify`, built once per sequence.
+
+        The default keeps the stacked descriptors (or ragged features) as they are.
+        """
+        return features
+
+    def retrieve(
+        self, db: Any, query: int, n_allowed: int, k: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``k`` candidates among frames ``[0, n_allowed)``, best first.
+
+        Returns ``(indices (k',) int64, retrieval distances (k',) float64)``.
+        Only methods with a retrieval stage implement it.
+        """
+        raise NotImplementedError(f"{self.name} has no retrieval stage")
+
+    @classmethod
+    def has_retrieval(cls) -> bool:
+        """True when the class implements :meth:`retrieve`."""
+        return cls.retrieve is not Descriptor.retrieve
+
+    def verify(self, db: Any, query: int, candidates: np.ndarray) -> Verification:
+        """Score candidates of ``query`` (smaller = more similar) with a pose each.
+
+        The default, for global descriptors, is the full distance of each
+        candidate and the yaw-only pose of its yaw (:func:`yaw_to_pose`), with
+        no inliers. Two-stage methods override it with a geometric check.
+        """
+        candidates = np.asarray(candidates, dtype=np.int64)
+        if len(candidates) == 0:
+            return Verification(np.empty(0), np.empty((0, 4, 4)), np.empty(0, np.int64))
+        dist, yaw = self.distances(db[query], db[candidates])
+        return Verification(np.asarray(dist, dtype=np.float64), yaw_to_pose(yaw),
+                            np.zeros(len(candidates), np.int64))
 
     def distances(self, query: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One query against a stacked database: ``(M,)`` distances and yaws.

@@ -4,6 +4,7 @@
 
     dataset/
       sequences/00/velodyne/000000.bin ...   scans
+      sequences/00/labels/000000.label ...   SemanticKITTI labels (optional)
       sequences/00/calib.txt                 Tr (Velodyne -> camera)
       sequences/00/times.txt                 seconds, one per scan (optional)
       sequences/00/poses.txt                 camera poses (or:)
@@ -21,7 +22,7 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_kitti_poses
-from lidar_iris_eval.io.sequence import Sequence, check_counts, list_scans
+from lidar_iris_eval.io.sequence import Sequence, check_counts, find_labels, list_scans
 
 
 def is_kitti_layout(path: Path) -> bool:
@@ -65,6 +66,7 @@ def open_kitti(
     if times_path.is_file():
         times = _read_times(times_path)
         check_counts(len(scan_paths), len(times), seq_dir / "velodyne", times_path)
+    labels_dir = seq_dir / "labels"
     return Sequence(
         name=seq_dir.name,
         path=seq_dir,
@@ -73,6 +75,8 @@ def open_kitti(
         camera_poses=camera_poses,
         times=times,
         calib=tr,
+        label_paths=find_labels(labels_dir, scan_paths),
+        labels_dir=labels_dir,
     )
 
 

@@ -1,13 +1,17 @@
 """Reading single scans from disk, with the input checks every reader shares.
 
 A scan is an ``(N, 3)`` float32 array of points in the sensor frame, plus an
-optional ``(N,)`` intensity. Non-finite points are dropped with a warning that
+optional ``(N,)`` intensity and optional ``(N,)`` per-point labels (SemanticKITTI
+``.label`` files: uint32, semantic class in the low 16 bits, instance id in the
+high 16). Non-finite points are dropped, with their labels, and a warning that
 counts them; an empty scan is an error, because every descriptor would return
 garbage for it and the user should know which file is at fault.
 """
 
 from __future__ import annotations
 
+import inspect
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -16,23 +20,48 @@ import numpy as np
 from lidar_iris_eval.errors import LirisError, warn
 
 KITTI_POINT_BYTES = 16  # float32 x, y, z, intensity
+LABEL_BYTES = 4  # SemanticKITTI: one little-endian uint32 per point
+LABEL_SUFFIX = ".label"
 
 
 class Scan(NamedTuple):
-    """Points ``(N, 3)`` float32 and intensity ``(N,)`` float32 or None."""
+    """One scan as read from disk.
+
+    Attributes
+    ----------
+    points : ``(N, 3)`` float32, sensor (LiDAR) frame.
+    intensity : ``(N,)`` float32, or None when the format has none.
+    labels : ``(N,)`` uint32 raw SemanticKITTI labels, or None; the semantic
+        class is ``labels & 0xFFFF``, the instance ``labels >> 16``.
+    """
 
     points: np.ndarray
     intensity: np.ndarray | None
+    labels: np.ndarray | None = None
 
 
-def clean_points(points: np.ndarray, intensity: np.ndarray | None, source: str | Path) -> Scan:
+def clean_points(
+    points: np.ndarray,
+    intensity: np.ndarray | None,
+    source: str | Path,
+    labels: np.ndarray | None = None,
+    labels_source: str | Path | None = None,
+) -> Scan:
     """Drop non-finite points (warning with their count); reject empty scans.
 
     ``points`` may have more than 3 columns; only the first three are kept.
+    ``labels`` (one per point *as stored*, before dropping) are filtered with
+    the points; a count that differs from the stored points is an error
+    naming ``labels_source``.
     """
     points = np.asarray(points, dtype=np.float32)
     if points.ndim != 2 or points.shape[1] < 3:
         raise LirisError(source, f"expected an (N, 3) point array, got shape {points.shape}")
+    if labels is not None and len(labels) != len(points):
+        raise LirisError(
+            labels_source or source,
+            f"{len(labels)} labels but {len(points)} points in {source}; counts must be equal",
+        )
     xyz = points[:, :3]
     finite = np.isfinite(xyz).all(axis=1)
     n_bad = int(len(finite) - np.count_nonzero(finite))
@@ -41,14 +70,56 @@ def clean_points(points: np.ndarray, intensity: np.ndarray | None, source: str |
         xyz = xyz[finite]
         if intensity is not None:
             intensity = intensity[finite]
+        if labels is not None:
+            labels = labels[finite]
     if len(xyz) == 0:
         raise LirisError(source, "empty scan (no valid points)")
     if intensity is not None:
         intensity = np.ascontiguousarray(intensity, dtype=np.float32)
-    return Scan(np.ascontiguousarray(xyz), intensity)
+    if labels is not None:
+        labels = np.ascontiguousarray(labels, dtype=np.uint32)
+    return Scan(np.ascontiguousarray(xyz), intensity, labels)
 
 
-def read_kitti_bin(path: str | Path) -> Scan:
+def read_labels(path: str | Path) -> np.ndarray:
+    """Read a SemanticKITTI ``.label`` file: ``(N,)`` uint32, little-endian."""
+    path = Path(path)
+    if not path.is_file():
+        raise LirisError(path, "label file not found")
+    size = path.stat().st_size
+    if size % LABEL_BYTES:
+        raise LirisError(
+            path, f"truncated label file: size {size} bytes is not a multiple of {LABEL_BYTES}"
+        )
+    return np.fromfile(path, dtype="<u4").astype(np.uint32, copy=False)
+
+
+def with_labels(read: Callable[[Path], Scan], path: Path, labels_path: Path) -> Scan:
+    """Read scan ``path`` with ``read`` and attach the labels of ``labels_path``.
+
+    Readers that accept ``labels=``/``labels_source=`` filter them together
+    with dropped points; for any other reader the label count must equal the
+    number of points it returns.
+    """
+    labels = read_labels(labels_path)
+    try:
+        params = inspect.signature(read).parameters
+    except (TypeError, ValueError):
+        params = {}
+    if "labels" in params:
+        return read(path, labels=labels, labels_source=labels_path)
+    scan = read(path)
+    if len(labels) != len(scan.points):
+        raise LirisError(
+            labels_path,
+            f"{len(labels)} labels but {len(scan.points)} points in {path}; counts must be equal",
+        )
+    return scan._replace(labels=labels)
+
+
+def read_kitti_bin(
+    path: str | Path, labels: np.ndarray | None = None, labels_source: Path | None = None
+) -> Scan:
     """Read a KITTI ``.bin`` scan: float32 x, y, z, intensity, 16 bytes a point."""
     path = Path(path)
     if not path.is_file():
@@ -61,10 +132,12 @@ def read_kitti_bin(path: str | Path) -> Scan:
             f"{KITTI_POINT_BYTES} (float32 x, y, z, intensity)",
         )
     data = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-    return clean_points(data[:, :3], data[:, 3], path)
+    return clean_points(data[:, :3], data[:, 3], path, labels, labels_source)
 
 
-def read_npy(path: str | Path) -> Scan:
+def read_npy(
+    path: str | Path, labels: np.ndarray | None = None, labels_source: Path | None = None
+) -> Scan:
     """Read a ``.npy`` scan of shape (N, 3) or (N, 4+) (the 4th column is intensity)."""
     path = Path(path)
     if not path.is_file():
@@ -76,4 +149,4 @@ def read_npy(path: str | Path) -> Scan:
     if data.ndim != 2 or data.shape[1] < 3:
         raise LirisError(path, f"expected an (N, 3) or (N, 4) array, got shape {data.shape}")
     intensity = data[:, 3] if data.shape[1] > 3 else None
-    return clean_points(data[:, :3], intensity, path)
+    return clean_points(data[:, :3], intensity, path, labels, labels_source)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, warn
-from lidar_iris_eval.io.scans import Scan, read_kitti_bin, read_npy
+from lidar_iris_eval.io.scans import LABEL_SUFFIX, Scan, read_kitti_bin, read_npy, with_labels
 
 #: file suffix -> reader (a callable, or "module:function" imported on first use)
 SCAN_READERS: dict[str, Callable[[Path], Scan] | str] = {
@@ -53,6 +53,11 @@ class Sequence(SequenceABC):
     times : ``(N,)`` seconds, or None.
     calib : the 4×4 ``Tr`` (Velodyne → camera), or None.
     frame_ids : integer id of each scan (from its file name when numeric).
+    label_paths : one SemanticKITTI ``.label`` file per scan, or None when the
+        sequence has no labels.
+    labels_dir : where labels are (or would be) looked for, for messages
+        ("needs labels, none in <labels_dir>"); None when the format has no
+        place for them (ROS bags).
     """
 
     name: str
@@ -63,6 +68,11 @@ class Sequence(SequenceABC):
     times: np.ndarray | None = None
     calib: np.ndarray | None = None
     frame_ids: np.ndarray = field(default=None)  # type: ignore[assignment]
+    label_paths: list[Path] | None = None
+    labels_dir: Path | None = None
+
+    #: scans of this sequence never carry objects (see io/objects.py for those)
+    has_objects = False
 
     def __post_init__(self) -> None:
         if self.frame_ids is None:
@@ -79,10 +89,24 @@ class Sequence(SequenceABC):
         for i in range(len(self)):
             yield self[i]
 
+    @property
+    def has_labels(self) -> bool:
+        """True when every scan has a per-point label file."""
+        return self.label_paths is not None
+
+    @property
+    def provides(self) -> frozenset[str]:
+        """The inputs a method may ask of this sequence's scans (``Descriptor.inputs``)."""
+        base = {"points", "intensity"}
+        return frozenset(base | {"labels"} if self.has_labels else base)
+
     def scan(self, index: int) -> Scan:
-        """Points and intensity of scan ``index``."""
+        """Points, intensity and (when the sequence has them) labels of scan ``index``."""
         path = self.scan_paths[index]
-        return scan_reader(path.suffix)(path)
+        reader = scan_reader(path.suffix)
+        if self.label_paths is None:
+            return reader(path)
+        return with_labels(reader, path, self.label_paths[index])
 
     def positions(self, frame: str = "lidar") -> np.ndarray:
         """``(N, 3)`` translations of the LiDAR or camera poses."""
@@ -127,6 +151,25 @@ def hash_file_samples(digest, paths: list[Path]) -> None:
             if size > 2 * FINGERPRINT_SAMPLE_BYTES:
                 handle.seek(size - FINGERPRINT_SAMPLE_BYTES)
                 digest.update(handle.read())
+
+
+def find_labels(labels_dir: Path, scan_paths: list[Path]) -> list[Path] | None:
+    """``labels_dir/<stem>.label`` for every scan, or None when ``labels_dir`` is absent.
+
+    A labels folder that lacks some scans' files is an error naming the first
+    missing one: silently evaluating a labelled method on part of a sequence
+    would be worse.
+    """
+    if not labels_dir.is_dir():
+        return None
+    present = {p.name for p in labels_dir.iterdir()}
+    paths = [labels_dir / f"{p.stem}{LABEL_SUFFIX}" for p in scan_paths]
+    missing = [p for p in paths if p.name not in present]
+    if missing:
+        raise LirisError(
+            missing[0], f"label file missing ({len(missing)} of {len(paths)} scans have none)"
+        )
+    return paths
 
 
 def _frame_id(path: Path, default: int) -> int:
