@@ -14,7 +14,12 @@ place with :func:`os.replace`, so a reader sees either nothing or a complete
 file, even when the writer is killed. Each file carries a SHA-256 of its arrays
 and the key it was written for; a file that fails to load, or whose checksum
 or key does not match, is reported with a warning, deleted, and treated as
-missing, so the caller rebuilds it.
+missing, so the caller rebuilds it. A file this process may not read (another
+user's, on a shared cache) is never deleted: it is reported, left in place,
+and the descriptors are computed without caching them.
+
+Files are created with the permissions the umask allows (``mkstemp`` alone
+would make them private), so a group-shared cache stays shared.
 
 Long extractions also store *chunks* (``<stem>.partial/chunk-<a>-<b>.npz``,
 same format) as they go, so an interrupted run resumes where it stopped.
@@ -37,12 +42,19 @@ from typing import Any
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error, warn
 
 CACHE_FORMAT = 1
 ENV_VAR = "LIRIS_CACHE_DIR"
 DEFAULT_DIRNAME = ".liris-cache"
 _META = "__meta__"
+
+
+def umask() -> int:
+    """The process umask (read by setting it and putting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def default_cache_dir() -> Path:
@@ -105,11 +117,15 @@ def write_arrays(path: Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
     try:
+        os.fchmod(fd, 0o666 & ~umask())  # mkstemp makes 0600 whatever the umask
         with os.fdopen(fd, "wb") as handle:
             np.savez(handle, **arrays, **{_META: blob})
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
+    except OSError as err:
+        Path(tmp).unlink(missing_ok=True)
+        raise os_error(err, path, "cannot write cache file") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -122,10 +138,14 @@ def read_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     ------
     ValueError
         When the file is truncated, not an archive, or fails its checksum.
+    PermissionError
+        When this process may not read it (not a sign of corruption).
     """
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
+    except PermissionError:
+        raise
     except (zipfile.BadZipFile, OSError, EOFError, KeyError, ValueError) as err:
         raise ValueError(f"unreadable ({type(err).__name__}: {err})") from None
     blob = arrays.pop(_META, None)
@@ -147,6 +167,7 @@ class DescriptorCache:
         self.root = Path(root) if root is not None else default_cache_dir()
         if self.root.exists() and not self.root.is_dir():
             raise LirisError(self.root, "cache directory is a file")
+        self._unreadable: set[Path] = set()  # other users' files: never replaced
 
     def __repr__(self) -> str:
         return f"DescriptorCache({str(self.root)!r})"
@@ -161,9 +182,23 @@ class DescriptorCache:
         """The arrays stored for ``key``, or None (a bad file is warned about and removed)."""
         return self._load_verified(self.path(key), key)
 
-    def store(self, key: CacheKey, arrays: dict[str, np.ndarray]) -> Path:
-        """Store the complete arrays for ``key`` and drop its partial chunks."""
+    def check_writable(self) -> None:
+        """Raise a LirisError now (before any work) if the cache cannot be written."""
+        check_writable_dir(self.root, "descriptor cache folder")
+
+    def writable(self, key: CacheKey) -> bool:
+        """False when ``key``'s file exists but may not be read: it is left alone."""
+        return self.path(key) not in self._unreadable
+
+    def store(self, key: CacheKey, arrays: dict[str, np.ndarray]) -> Path | None:
+        """Store the complete arrays for ``key`` and drop its partial chunks.
+
+        Returns None (storing nothing) when the existing file is unreadable to
+        this process: replacing it would destroy someone else's file.
+        """
         path = self.path(key)
+        if not self.writable(key):
+            return None
         write_arrays(path, arrays, {"key": asdict(key), "digest": key.digest()})
         shutil.rmtree(self.partial_dir(key), ignore_errors=True)
         return path
@@ -172,6 +207,8 @@ class DescriptorCache:
         self, key: CacheKey, start: int, stop: int, arrays: dict[str, np.ndarray]
     ) -> None:
         """Store the arrays of scans ``[start, stop)`` as one resumable chunk."""
+        if not self.writable(key):
+            return
         path = self.partial_dir(key) / f"chunk-{start:09d}-{stop:09d}.npz"
         meta = {"digest": key.digest(), "start": start, "stop": stop}
         write_arrays(path, arrays, meta)
@@ -203,6 +240,11 @@ class DescriptorCache:
             arrays, meta = read_arrays(path)
             if meta.get("digest") != key.digest():
                 raise ValueError("written for a different key")
+        except PermissionError:
+            self._unreadable.add(self.path(key))
+            warn(path, "cache file is not readable (permission denied); leaving it in place "
+                       "and computing without caching")
+            return None
         except ValueError as err:
             warn(path, f"corrupt cache file ({err}); deleting it and recomputing")
             path.unlink(missing_ok=True)

@@ -18,12 +18,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
+import numbers
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, read_text
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
@@ -36,7 +38,7 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise LirisError(path, "config file not found")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(read_text(path, "config file"))
     except yaml.YAMLError as err:
         raise LirisError(path, f"not valid YAML ({str(err).splitlines()[0]})") from None
     if data is None:
@@ -50,7 +52,10 @@ def make_params(params_type: type[P], values: dict[str, Any], source: str) -> P:
     """Build a frozen params dataclass from ``values``, rejecting unknown keys.
 
     Values are converted to the type of the field's default (so YAML ``4`` works
-    for a float field, and lists become tuples), keeping params hashable.
+    for a float field, and lists become tuples), keeping params hashable. A
+    conversion that would change the value is refused, not done silently:
+    ``rings=2.5`` for an integer field, a NaN or infinite number, a number
+    given as text.
     """
     fields = {f.name: f for f in dataclasses.fields(params_type)}
     unknown = sorted(set(values) - set(fields))
@@ -64,8 +69,9 @@ def make_params(params_type: type[P], values: dict[str, Any], source: str) -> P:
         default = fields[key].default
         try:
             converted[key] = _coerce(value, default)
-        except (TypeError, ValueError):
-            raise LirisError(source, f"bad value {value!r} for config key {key!r}") from None
+        except (TypeError, ValueError) as err:
+            reason = f": {err}" if str(err) else ""
+            raise LirisError(source, f"bad value {value!r} for {key}{reason}") from None
     return params_type(**converted)
 
 
@@ -76,10 +82,18 @@ def _coerce(value: Any, default: Any) -> Any:
         if not isinstance(value, bool):
             raise TypeError
         return value
-    if isinstance(default, (int, float, str)):
-        if isinstance(value, bool):
-            raise TypeError
+    if isinstance(default, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise TypeError(f"expected a number, got {type(value).__name__}")
+        if not math.isfinite(value):
+            raise ValueError("must be a finite number")
+        if isinstance(default, int) and value != int(value):
+            raise ValueError("must be a whole number")
         return type(default)(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise TypeError(f"expected text, got {type(value).__name__}")
+        return value
     if isinstance(default, tuple):
         return tuple(value)
     return value

@@ -189,6 +189,10 @@ def extract(
         if stored is not None and _complete(stored, len(seq)):
             return DescriptorDB(**meta, **_split(stored), from_cache=True)
 
+    if cache is not None and not cache.writable(key):
+        meta["cache_path"] = None  # someone else's unreadable file: compute, do not store
+    elif cache is not None:
+        cache.check_writable()  # fail now, not after the extraction
     chunks = cache.load_chunks(key) if cache is not None else {}
     ranges = chunk_ranges(len(seq), chunk_size)
     chunks = {r: arrays for r, arrays in chunks.items() if r in ranges}

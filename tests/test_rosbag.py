@@ -380,7 +380,7 @@ def test_clear_errors(tmp_path):
     with pytest.raises(LirisError, match=r"several .*PointCloud2 topics.*--topic"):
         open_rosbag(two)
     assert len(open_rosbag(two, topic="/velodyne_points")) == 3
-    with pytest.raises(LirisError, match="do not apply to a ROS bag"):
+    with pytest.raises(LirisError, match="times: not used for a ROS bag"):
         open_rosbag(bag, times="x.txt")
     with pytest.raises(LirisError, match="cannot read ROS bag"):
         (tmp_path / "junk.bag").write_bytes(b"#ROSBAG V2.0\nnot really")

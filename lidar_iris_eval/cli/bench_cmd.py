@@ -16,7 +16,12 @@ from lidar_iris_eval.bench import (
     simulated_sequence,
     summary_rows,
 )
-from lidar_iris_eval.cli.output import echo_table, format_table
+from lidar_iris_eval.cli.output import (
+    check_output_file,
+    echo_table,
+    format_table,
+    write_output_file,
+)
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.report import json_ready
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
@@ -88,6 +93,8 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
                              loop_pairs=loop_pairs, kernel_queries=kernel_queries,
                              workers=workers, isolate=not in_process, pair_budget=block_pairs)
     descriptors = build_bench_descriptors(descriptor_text, preset)
+    if json_path is not None and json_path != "-":
+        check_output_file(json_path, "--json")  # before the benchmark, not after it
     work_dir = work_dir if work_dir is not None else default_cache_dir() / "bench"
 
     def log(message: str) -> None:
@@ -116,12 +123,11 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
         click.echo(json.dumps(report, indent=2))
         click.echo(format_table(rows), err=True)
         return
-    if json_path is not None:
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(report, indent=2) + "\n")
-    echo_table(rows)
+    echo_table(rows)  # first: a failing --json write must not lose the table too
     for bar in report["bars"]:
         verdict = "met" if bar["met"] else "MISSED"
         click.echo(f"bar: {bar['bar']}: {bar['value']:.4g} (limit {bar['limit']:g}) {verdict}")
     load = report["load_average"]
     click.echo(f"load average: start {load['start']}, end {load['end']}")
+    if json_path is not None:
+        write_output_file(json_path, json.dumps(report, indent=2) + "\n")

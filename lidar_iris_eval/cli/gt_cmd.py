@@ -13,6 +13,7 @@ from lidar_iris_eval.cli.options import ground_truth_options, parse_exclude
 from lidar_iris_eval.cli.output import echo_json, echo_table
 from lidar_iris_eval.cli.sequence_options import sequence_options
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import options as option_names
 from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
 
@@ -62,7 +63,7 @@ def _positions(sequence, poses_path, calib_path, pose_frame, reader_options):
         pose_frame = seq.resolve_pose_frame(pose_frame)
         return seq.positions(pose_frame), sequence, seq, pose_frame
     if reader_options:
-        raise LirisError("--poses", f"reader options {sorted(reader_options)} need a SEQUENCE")
+        raise LirisError(option_names(reader_options), "needs a SEQUENCE, not only --poses")
     _, poses = read_pose_file(poses_path)
     if pose_frame == "lidar":
         if calib_path is None:

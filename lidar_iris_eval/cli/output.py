@@ -4,9 +4,15 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import tempfile
 from collections.abc import Sequence
+from pathlib import Path
 
 import click
+
+from lidar_iris_eval.cache import umask
+from lidar_iris_eval.errors import LirisError, check_writable_dir, file_in_the_way
 
 
 def format_value(value) -> str:
@@ -42,3 +48,34 @@ def echo_table(rows: Sequence[dict], columns: Sequence[str] | None = None) -> No
 
 def echo_json(data) -> None:
     click.echo(json.dumps(data, indent=2, sort_keys=False))
+
+
+def check_output_file(path: Path, flag: str) -> Path:
+    """Fail now, before any work, if ``path`` cannot be written as a file.
+
+    A folder, a path under a file or a read-only location is reported as one
+    line naming ``flag`` and the path as the user typed them.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise LirisError(f"{flag} {path}", "is a folder; give a file name")
+    blocker = file_in_the_way(path.parent)
+    if blocker is not None:
+        raise LirisError(f"{flag} {path}", f"cannot be created: {blocker} is a file")
+    check_writable_dir(path.parent, f"folder for {flag}")
+    return path
+
+
+def write_output_file(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temporary file + rename), umask permissions."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.tmp-")
+    try:
+        os.fchmod(fd, 0o666 & ~umask())
+        with os.fdopen(fd, "w") as handle:
+            handle.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -6,6 +6,11 @@ into place with one rename when everything is written, so a reader (or
 the previous results untouched. An existing run is only replaced when the
 caller asks for it (``overwrite=True``).
 
+The temporary folder's name records the host and process that own it
+(``.<name>.tmp-<host>-<pid>-<random>``); a writer starting next to it removes
+those whose process is gone (killed with SIGKILL, no chance to clean up).
+Folders get the permissions the umask allows, like ``mkdir`` would.
+
 Nothing here computes metrics; it only lays out results computed elsewhere.
 """
 
@@ -14,7 +19,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
+import socket
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -23,7 +30,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.cache import umask
+from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error
 from lidar_iris_eval.evaluation.metrics import PRCurve, reduce_curve
 from lidar_iris_eval.evaluation.protocol1 import Protocol1Result
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result
@@ -33,12 +41,17 @@ SUMMARY_KEYS = ("ap", "f1_max", "f1_threshold", "r100p", "ep")
 
 
 def check_run_dir(out: str | os.PathLike, overwrite: bool) -> Path:
-    """Refuse an existing run directory unless ``overwrite``; returns the path."""
+    """Refuse an existing run directory unless ``overwrite``; returns the path.
+
+    Also checks, before any work starts, that the folder can be created: a
+    read-only location or a file in the way fails now, not after extraction.
+    """
     out = Path(out)
     if out.exists() and not overwrite:
         raise LirisError(out, "results directory already exists; pass --overwrite to replace it")
     if out.exists() and not out.is_dir():
         raise LirisError(out, "exists and is not a directory")
+    check_writable_dir(out, "run folder")
     return out
 
 
@@ -53,7 +66,10 @@ class RunWriter:
         self.out = check_run_dir(out, overwrite)
         self.overwrite = overwrite
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.tmp-", dir=self.out.parent))
+        remove_stale_temp_runs(self.out.parent)
+        prefix = f".{self.out.name}.tmp-{_HOST}-{os.getpid()}-"
+        self.tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=self.out.parent))
+        os.chmod(self.tmp, 0o777 & ~umask())  # mkdtemp makes 0700 whatever the umask
 
     def __enter__(self) -> RunWriter:
         return self
@@ -63,6 +79,8 @@ class RunWriter:
             self.commit()
         else:
             shutil.rmtree(self.tmp, ignore_errors=True)
+            if isinstance(exc, OSError):  # name the run, not an anonymous temporary file
+                raise os_error(exc, self.out, "cannot write the run folder") from None
 
     def path(self, relative: str) -> Path:
         target = self.tmp / relative
@@ -98,6 +116,42 @@ class RunWriter:
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return self.out
+
+
+_HOST = "".join(c if c.isalnum() else "_" for c in socket.gethostname()) or "host"
+_TEMP_RUN = re.compile(r"^\..+\.tmp-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+$")
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_temp_runs(folder: Path) -> list[Path]:
+    """Delete temporary run folders in ``folder`` whose owning process is gone.
+
+    Only folders created on this host by a process that no longer exists are
+    removed (a live process, or one on another host sharing the disk, is left
+    alone). Returns what was removed.
+    """
+    removed = []
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        match = _TEMP_RUN.match(entry.name)
+        if (match is None or match["host"] != _HOST or not entry.is_dir()
+                or _process_alive(int(match["pid"]))):
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+        removed.append(entry)
+    return removed
 
 
 def pr_table(curve: PRCurve) -> dict[str, np.ndarray]:

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.errors import options as option_names
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
 from lidar_iris_eval.io.sequence import Sequence, check_counts, find_labels, list_scans
 from lidar_iris_eval.io.timematch import (
@@ -43,8 +44,6 @@ POSE_FILE_NAMES = ("poses.txt", "poses_tum.txt")
 POSE_FILE_GLOB = "*.tum"
 TIMES_FILE_NAME = "times.txt"
 CALIB_FILE_NAME = "calib.txt"
-#: reader options that belong to other formats; passing them here is a mistake
-_OPTION_FLAGS = {"topic": "--topic", "pose_topic": "--pose-topic", "stamps": "--stamps"}
 
 
 def open_folder(
@@ -74,8 +73,7 @@ def open_folder(
     """
     folder = Path(path)
     if opts:
-        flags = ", ".join(_OPTION_FLAGS.get(k, k) for k in sorted(opts))
-        raise LirisError(folder, f"option(s) {flags} do not apply to a folder of scans")
+        raise LirisError(folder, f"{option_names(opts)}: not used for a folder of scans")
     scan_paths = list_scans(folder)
     frame_ids = None
     scan_times = _read_times(Path(times), len(scan_paths), folder) if times else None
@@ -160,8 +158,8 @@ def _calib(folder: Path, calib: str | Path | None, required: bool, pose_path: Pa
             raise LirisError(
                 pose_path,
                 "poses are taken as camera-frame (KITTI convention) and need a calib.txt with Tr "
-                "to convert them (give --calib, or put calib.txt beside the scans); if they are "
-                "already LiDAR poses, say so with --lidar-frame-poses (lidar_frame=True)",
+                f"to convert them (give {option('calib')}, or put calib.txt beside the scans); "
+                "if they are already LiDAR poses, say so with " + option("lidar_frame", True),
             )
         return None
     return read_calib(calib_path)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, read_text
 
 
 def _read_rows(path: Path, expected: int, what: str) -> np.ndarray:
@@ -19,7 +19,7 @@ def _read_rows(path: Path, expected: int, what: str) -> np.ndarray:
     if not path.is_file():
         raise LirisError(path, f"{what} file not found")
     rows = []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(read_text(path, f"{what} file").splitlines(), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
@@ -100,7 +100,7 @@ def read_pose_file(path: str | Path, fmt: str = "auto") -> tuple[np.ndarray | No
 def _guess_pose_format(path: Path) -> str:
     if not path.is_file():
         raise LirisError(path, "pose file not found")
-    for line in path.read_text().splitlines():
+    for line in read_text(path, "pose file").splitlines():
         text = line.strip()
         if text and not text.startswith("#"):
             width = len(text.replace(",", " ").split())
@@ -123,7 +123,7 @@ def read_calib(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise LirisError(path, "calibration file not found")
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(read_text(path, "calibration file").splitlines(), start=1):
         key, _, rest = line.partition(":")
         if key.strip() in ("Tr", "Tr_velo_to_cam"):
             try:

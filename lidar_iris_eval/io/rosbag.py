@@ -28,13 +28,14 @@ from __future__ import annotations
 import hashlib
 import os
 import struct
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.errors import LirisError, options, os_error, warn
 from lidar_iris_eval.io.poses import quaternion_to_matrix, read_pose_file
 from lidar_iris_eval.io.scans import Scan, clean_points
 from lidar_iris_eval.io.sequence import Sequence, hash_file_samples
@@ -94,7 +95,9 @@ class BagSequence(Sequence):
         if found is None:
             raise LirisError(self._source(index), "message not found (bag changed since opening?)")
         conn, _, raw = found
-        return decode_pointcloud2(reader.deserialize(raw, conn.msgtype), self._source(index))
+        with corrupt_bag_errors(self._source(index)):
+            msg = reader.deserialize(raw, conn.msgtype)
+        return decode_pointcloud2(msg, self._source(index))
 
     def fingerprint(self) -> str:
         """Hash of the bag files' names, sizes and ends, the topic and the kept messages."""
@@ -163,7 +166,7 @@ def open_rosbag(
     """
     path = Path(path)
     if opts:
-        raise LirisError(path, f"option(s) {sorted(opts)} do not apply to a ROS bag")
+        raise LirisError(path, f"{options(opts)}: not used for a ROS bag")
     if stamps not in STAMP_SOURCES:
         raise LirisError(f"--stamps {stamps}", f"choose one of {', '.join(STAMP_SOURCES)}")
     if not lidar_frame:
@@ -175,7 +178,8 @@ def open_rosbag(
         topics = _topic_types(reader)
         cloud_topic = choose_topic(topics, topic, (CLOUD_TYPE,), "--topic", path)
         cloud_conns = [c for c in reader.connections if c.topic == cloud_topic]
-        log_ns, stamp_ns = index_messages(reader, cloud_conns)
+        with corrupt_bag_errors(path):
+            log_ns, stamp_ns = index_messages(reader, cloud_conns)
         scan_ns = _pick_stamps(stamp_ns, log_ns, stamps, f"{path}:{cloud_topic}")
         if len(scan_ns) == 0:
             raise LirisError(path, f"topic {cloud_topic} has no messages")
@@ -229,11 +233,34 @@ def _open_reader(path: Path):
     if not path.exists():
         raise LirisError(path, "no such bag")
     try:
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
-        reader.open()
-    except (AnyReaderError, OSError) as err:
+        with corrupt_bag_errors(path):
+            reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
+            reader.open()
+    except AnyReaderError as err:
         raise LirisError(path, f"cannot read ROS bag: {err}") from None
     return reader
+
+
+@contextmanager
+def corrupt_bag_errors(path: str | Path):
+    """Report what a damaged or foreign file makes the bag library raise as one LirisError.
+
+    ``rosbags`` decodes headers and messages straight from the bytes, so a
+    file of random bytes surfaces as ``UnicodeDecodeError``, ``struct.error``,
+    ``KeyError``... rather than a bag error. Our own errors pass through, and
+    OS errors keep their cause (see :func:`lidar_iris_eval.errors.os_error`).
+    """
+    try:
+        yield
+    except LirisError:
+        raise
+    except OSError as err:
+        raise os_error(err, path, "cannot read ROS bag") from None
+    except (UnicodeDecodeError, struct.error, KeyError, IndexError, ValueError, EOFError,
+            AssertionError, TypeError) as err:
+        detail = type(err).__name__
+        raise LirisError(path, f"not a readable ROS bag (corrupt or another format: {detail})"
+                         ) from None
 
 
 def _topic_types(reader) -> dict[str, str]:
