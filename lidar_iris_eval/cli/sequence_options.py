@@ -20,6 +20,7 @@ _KEYWORDS = {
     "times_path": "times",
     "topic": "topic",
     "pose_topic": "pose_topic",
+    "frames": "frames",
     "every": "every",
     "min_distance": "min_distance",
     "tolerance": "tolerance",
@@ -28,7 +29,7 @@ _KEYWORDS = {
 
 
 def sequence_options(func):
-    """Reader options: pose format/frame, bag topics, time matching, keyframes."""
+    """Reader options: pose format/frame, bag topics, time matching, frame selection."""
 
     @click.option("--pose-format", type=click.Choice(["auto", "kitti", "tum"]), default=None,
                   help="Pose file format (default: detected from the first line).")
@@ -43,9 +44,12 @@ def sequence_options(func):
                   help="ROS bags: time scans by header stamp (default) or recording time.")
     @click.option("--tolerance", type=float, default=None,
                   help="Seconds; scans with no pose this close in time are dropped [0.1].")
-    @click.option("--every", type=int, default=None, help="Keep every N-th scan.")
+    @click.option("--frames", default=None, metavar="START:STOP[:STEP]",
+                  help="Keep these frames (0-based, STOP excluded), e.g. 0:200:2; any format.")
+    @click.option("--every", type=int, default=None,
+                  help="Keep every N-th scan (after --frames and --min-distance); any format.")
     @click.option("--min-distance", type=float, default=None,
-                  help="Keep a scan only after the sensor moved this many metres.")
+                  help="Keep a scan only after the sensor moved this many metres; any format.")
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         kwargs["reader_options"] = {

@@ -32,9 +32,14 @@ def open_sequence(
     path = Path(path)
     if not path.exists():
         raise LirisError(path, "no such file or folder")
+    from lidar_iris_eval.io import selection
+
+    chosen = {k: options.pop(k) for k in selection.SELECTION_KEYS if k in options}
+    if chosen:  # frames, every, min_distance: the same for every format
+        return selection.select_frames(open_sequence(path, poses, calib, **options), **chosen)
     if is_kitti_layout(path):
-        if options:
-            raise LirisError(path, f"options {sorted(options)} do not apply to a KITTI layout")
+        if selection.needs_folder_reader(poses, options):  # TUM poses, times, pose options
+            return selection.open_kitti_with_options(path, poses, calib, **options)
         return open_kitti(path, poses=poses, calib=calib)
     if _is_rosbag(path):
         from lidar_iris_eval.io.rosbag import open_rosbag
