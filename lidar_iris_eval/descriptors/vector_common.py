@@ -28,8 +28,9 @@ def finite_xyz(points: np.ndarray, minimum: int, dtype=np.float64,
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise LirisError("points", f"expected an (N, 3) array, got shape {pts.shape}")
     pts = np.asarray(pts[:, :3], dtype=dtype)
-    finite = np.isfinite(pts).all(axis=1)
-    if not finite.all():
+    # one flat reduction in the usual all-finite case (a row-wise all() costs 2 ms per scan)
+    if not np.isfinite(pts).all():
+        finite = np.isfinite(pts).all(axis=1)
         warn("points", f"dropped {int((~finite).sum())} non-finite point(s)")
         pts = pts[finite]
     if len(pts) < minimum:

@@ -64,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.descriptors.esf import kernels
 from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks
 from lidar_iris_eval.errors import LirisError
 
@@ -138,6 +139,20 @@ def occupancy(vox: np.ndarray) -> np.ndarray:
 
 def trace_lines(start: np.ndarray, end: np.ndarray, occupied: np.ndarray):
     """Walk PCL's 3-D Bresenham line from each start voxel towards its end voxel.
+
+    The compiled loop of :mod:`.kernels`; :func:`trace_lines_numpy` (same
+    parameters and results, bitwise, tested) documents the closed form.
+    """
+    return kernels.trace_lines(
+        np.ascontiguousarray(start, dtype=np.int64),
+        np.ascontiguousarray(end, dtype=np.int64),
+        np.ascontiguousarray(occupied, dtype=bool),
+        GRID,
+    )
+
+
+def trace_lines_numpy(start: np.ndarray, end: np.ndarray, occupied: np.ndarray):
+    """Walk PCL's 3-D Bresenham line from each start voxel towards its end voxel (NumPy).
 
     Parameters
     ----------

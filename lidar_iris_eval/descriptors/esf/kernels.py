@@ -1,0 +1,55 @@
+"""ESF's line tracing in one compiled loop (numba).
+
+:func:`.descriptor.trace_lines_numpy` evaluates every step of every traced
+side at once with ``np.repeat`` arrays (about 2 M voxel visits per KITTI
+scan, a dozen temporaries of that length); that was 60 % of ESF's
+extraction. This loop walks the same closed form of PCL's Bresenham steps,
+``floor((2*m*k + M - 1) / (2*M))`` voxels along an axis of length ``m``
+after ``k`` major steps, in integer arithmetic, so the counts are exactly
+the NumPy route's (tested).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def trace_lines(start, end, occupied, grid):  # pragma: no cover - compiled
+    """Occupied voxels visited and voxels visited, per line: two ``(L,)`` int64.
+
+    Parameters
+    ----------
+    start, end : (L, 3) int64 voxel coordinates
+    occupied : (grid**3,) bool
+    grid : int
+        Voxels per axis (strides ``grid**2, grid, 1``).
+    """
+    n = start.shape[0]
+    inside = np.zeros(n, dtype=np.int64)
+    count = np.empty(n, dtype=np.int64)
+    strides = np.array([grid * grid, grid, 1], dtype=np.int64)
+    length = np.empty(3, dtype=np.int64)
+    signed = np.empty(3, dtype=np.int64)
+    for i in range(n):
+        base = 0
+        major = 1
+        for a in range(3):
+            d = end[i, a] - start[i, a]
+            length[a] = abs(d)
+            signed[a] = -strides[a] if d < 0 else strides[a]
+            base += start[i, a] * strides[a]
+            if length[a] > major:
+                major = length[a]
+        count[i] = major
+        denom = 2 * major
+        hits = 0
+        for k in range(major):
+            flat = base
+            for a in range(3):
+                flat += (2 * length[a] * k + major - 1) // denom * signed[a]
+            if occupied[flat]:
+                hits += 1
+        inside[i] = hits
+    return inside, count
