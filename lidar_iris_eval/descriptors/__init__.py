@@ -21,6 +21,7 @@ _REGISTRY: dict[str, str] = {
     "scan-context": "lidar_iris_eval.descriptors.scan_context:ScanContext",
     "m2dp": "lidar_iris_eval.descriptors.m2dp:M2DP",
     "esf": "lidar_iris_eval.descriptors.esf:ESF",
+    "gosmatch": "lidar_iris_eval.descriptors.gosmatch:GOSMatch",
 }
 
 

@@ -1,0 +1,228 @@
+"""GOSMatch: parameter sweep on simulated sequences, and protocol-1 speed at KITTI scale.
+
+Two jobs, both outside the test suite:
+
+``sweep SEQ``
+    Protocol 1 (E = 30, 4 m, ``revisits`` recall) on a *simulated* sequence with
+    labels, over a grid of the parameters neither the paper nor the authors' code
+    fixes: clustering tolerance and minimum size, candidates N, RANSAC iterations,
+    inlier threshold, minimum inliers, score, and RANSAC seeds. Objects are
+    clustered once per front-end setting; matching is repeated per setting.
+    Also counts the simulator's objects against its car instance ids.
+
+``speed OBJECTS --poses P --calib C``
+    Protocol 1 on the authors' object layout (all 4541 KITTI 00 scans): reading,
+    descriptors and matching timed separately, with the library's own loop over
+    ``retrieve``/``verify``; the per-pair reference (one ``verify_pair`` call per
+    candidate through ``GOSMatch.verify``) is what runs. Reports metrics too.
+
+The machine may be shared: the script prints the load average with each timing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from lidar_iris_eval.descriptors import get_descriptor
+from lidar_iris_eval.descriptors.gosmatch import GOSMatch
+from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+from lidar_iris_eval.evaluation.protocol1 import score_protocol1
+from lidar_iris_eval.matching.blocks import BestMatches
+from lidar_iris_eval.matching.geometry import (
+    invert_pose,
+    rotation_error_deg,
+    translation_error_m,
+)
+
+
+def load_sequence(path: str, poses: str | None, calib: str | None):
+    """An object layout or a KITTI-layout sequence with labels."""
+    from lidar_iris_eval.io import open_sequence
+    from lidar_iris_eval.io.objects import is_objects_layout, open_objects
+
+    if is_objects_layout(path):
+        return open_objects(path, poses=poses, calib=calib)
+    return open_sequence(path, poses=poses, calib=calib)
+
+
+class _LabelledScan:
+    """Points and labels of a KITTI-layout scan (read here, independent of io/ changes)."""
+
+    def __init__(self, seq, i: int):
+        path = seq.scan_paths[i]
+        self.points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)[:, :3]
+        self.labels = np.fromfile(path.parent.parent / "labels" / f"{path.stem}.label",
+                                  dtype=np.uint32)
+
+
+def features_of(seq, method: GOSMatch, quiet: bool = False) -> tuple[list[dict], float, float]:
+    """Feature sets of every scan, with read and compute seconds."""
+    out, t_read, t_comp = [], 0.0, 0.0
+    objects = getattr(seq, "has_objects", False)
+    for i in tqdm(range(len(seq)), desc="gosmatch features", file=sys.stderr, disable=quiet):
+        t0 = time.perf_counter()
+        scan = seq.scan(i) if objects else _LabelledScan(seq, i)
+        t1 = time.perf_counter()
+        out.append(method.compute(scan))
+        t_read += t1 - t0
+        t_comp += time.perf_counter() - t1
+    return out, t_read, t_comp
+
+
+def protocol1_two_stage(method: GOSMatch, db, exclude: int, quiet: bool = True):
+    """Protocol 1: retrieve N among ``j <= i - E``, verify, keep the smallest score."""
+    n = len(db)
+    queries = np.arange(min(exclude, n), n)
+    match = np.full(len(queries), -1, dtype=np.int64)
+    dist = np.full(len(queries), np.inf)
+    poses = np.full((len(queries), 4, 4), np.nan)
+    inliers = np.zeros(len(queries), dtype=np.int64)
+    k = method.params.candidates
+    t0 = time.perf_counter()
+    for q, i in enumerate(tqdm(queries, desc="gosmatch p1", file=sys.stderr, disable=quiet)):
+        cand, _ = method.retrieve(db, int(i), int(i - exclude + 1), k)
+        if len(cand) == 0:
+            continue
+        ver = method.verify(db, int(i), cand)
+        b = int(np.argmin(ver.score))
+        if np.isfinite(ver.score[b]):
+            match[q], dist[q], poses[q], inliers[q] = cand[b], ver.score[b], ver.pose[b], \
+                ver.inliers[b]
+    seconds = time.perf_counter() - t0
+    yaw = np.full(len(queries), np.nan)
+    best = BestMatches(queries, match, dist, yaw, seconds, len(queries) * k, f"candidates:{k}")
+    return best, poses, inliers, seconds
+
+
+def evaluate(seq, method, feats, exclude=30, radius=4.0, quiet=True):
+    """Protocol-1 metrics and pose errors of the true matches."""
+    db = method.prepare(feats)
+    best, poses, _, seconds = protocol1_two_stage(method, db, exclude, quiet)
+    positions = seq.positions("camera")
+    gt = compute_ground_truth(positions, radius=radius, exclude=exclude, frame="camera")
+    res = score_protocol1(best, positions, gt, "revisits", forward=seq.poses[:, :3, 0])
+    true = res.is_true
+    q, m = best.query[true], best.match[true]
+    t_gt = invert_pose(seq.poses[q]) @ seq.poses[m]
+    terr = translation_error_m(poses[true], t_gt)
+    rerr = rotation_error_deg(poses[true], t_gt)
+    metrics = {k: res.metrics[k] for k in ("ap", "f1_max", "r100p", "n_revisits", "n_true_top1")}
+    for key in res.metrics:
+        if "top1" in key and key != "n_true_top1":
+            metrics[key] = res.metrics[key]
+    metrics.update(pose_t_median_m=float(np.median(terr)) if len(terr) else None,
+                   pose_r_median_deg=float(np.median(rerr)) if len(rerr) else None,
+                   match_seconds=seconds)
+    return metrics
+
+
+def object_census(seq, method: GOSMatch, frames) -> dict:
+    """Clusters found vs car instances (the simulator's), and objects per class."""
+    s = method.cluster_settings
+    counts, inst = [], []
+    for i in frames:
+        scan = _LabelledScan(seq, i)
+        _, classes = method.objects(scan)
+        counts.append(np.bincount(classes, minlength=3))
+        sem = scan.labels & 0xFFFF
+        car = sem == 10
+        ids, n_pts = np.unique(scan.labels[car] >> 16, return_counts=True)
+        cent = [scan.points[car][(scan.labels[car] >> 16) == k].mean(0) for k in ids]
+        ok = [c for c, n in zip(cent, n_pts, strict=True)
+              if n >= s.min_points and np.linalg.norm(c) < s.max_range]
+        inst.append(len(ok))
+    counts = np.array(counts)
+    return {"vehicles": float(counts[:, 0].mean()), "trunks": float(counts[:, 1].mean()),
+            "poles": float(counts[:, 2].mean()), "car_instances": float(np.mean(inst))}
+
+
+def sweep(args) -> None:
+    seq = load_sequence(args.seq, args.poses, args.calib)
+    base = get_descriptor("gosmatch", preset=args.preset)
+    results = []
+    front = [(t, m) for t in args.tolerance for m in args.min_points]
+    for tol, mp in front:
+        method = GOSMatch(replace(base.params, cluster_tolerance=tol, cluster_min_points=mp),
+                          preset=base.preset)
+        census = object_census(seq, method, range(0, len(seq), max(1, len(seq) // 20)))
+        feats, _, t_comp = features_of(seq, method, quiet=True)
+        grid = itertools.product(args.candidates, args.iterations, args.threshold,
+                                 args.min_inliers, args.score, args.seeds)
+        for n, it, thr, mi, score, seed in grid:
+            params = replace(method.params, candidates=n, ransac_iterations=it,
+                             inlier_threshold=thr, min_inliers=mi, score=score, seed=seed)
+            m = GOSMatch(params, preset=base.preset)
+            row = {"tolerance": tol, "min_points": mp, "candidates": n, "iterations": it,
+                   "threshold": thr, "min_inliers": mi, "score": score, "seed": seed,
+                   **census, "extract_ms": 1e3 * t_comp / len(seq),
+                   **evaluate(seq, m, feats, args.exclude, args.radius)}
+            results.append(row)
+            print(json.dumps(row), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+
+
+def speed(args) -> None:
+    load = os.getloadavg()
+    seq = load_sequence(args.seq, args.poses, args.calib)
+    method = get_descriptor("gosmatch", preset=args.preset)
+    t0 = time.perf_counter()
+    feats, t_read, t_comp = features_of(seq, method, quiet=args.quiet)
+    t1 = time.perf_counter()
+    db = method.prepare(feats)
+    t2 = time.perf_counter()
+    metrics = evaluate(seq, method, feats, args.exclude, args.radius, quiet=args.quiet)
+    t3 = time.perf_counter()
+    report = {
+        "sequence": str(args.seq), "frames": len(seq), "preset": method.preset,
+        "params": {k: getattr(method.params, k) for k in method.params.__dataclass_fields__},
+        "read_s": t_read, "descriptors_s": t_comp, "features_total_s": t1 - t0,
+        "prepare_s": t2 - t1, "protocol1_total_s": t3 - t2,
+        "end_to_end_s": t3 - t0, "loadavg_before": load, "loadavg_after": os.getloadavg(),
+        "cpu_count": os.cpu_count(), "metrics": metrics,
+    }
+    del db
+    print(json.dumps(report, indent=1))
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1))
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="job", required=True)
+    for name in ("sweep", "speed"):
+        p = sub.add_parser(name)
+        p.add_argument("seq")
+        p.add_argument("--poses")
+        p.add_argument("--calib")
+        p.add_argument("--preset", default="reference")
+        p.add_argument("--exclude", type=int, default=30)
+        p.add_argument("--radius", type=float, default=4.0)
+        p.add_argument("--json")
+        p.add_argument("-q", "--quiet", action="store_true")
+    sw = sub.choices["sweep"]
+    sw.add_argument("--tolerance", type=float, nargs="+", default=[0.5])
+    sw.add_argument("--min-points", type=int, nargs="+", default=[10])
+    sw.add_argument("--candidates", type=int, nargs="+", default=[10])
+    sw.add_argument("--iterations", type=int, nargs="+", default=[100])
+    sw.add_argument("--threshold", type=float, nargs="+", default=[1.0])
+    sw.add_argument("--min-inliers", type=int, nargs="+", default=[4])
+    sw.add_argument("--score", nargs="+", default=["clipped-mean"])
+    sw.add_argument("--seeds", type=int, nargs="+", default=[0])
+    args = parser.parse_args(argv)
+    sweep(args) if args.job == "sweep" else speed(args)
+
+
+if __name__ == "__main__":
+    main()
