@@ -1,0 +1,236 @@
+"""One HTML page that shows a run folder: interactive PR curves, affinity images,
+the trajectory with protocol 1 outcomes, the metrics table and the conventions.
+
+The page works offline and from a plain file: plotly's JavaScript is written
+beside it (``plotly.min.js``), never loaded from a CDN, and the affinity
+matrices are embedded as PNG images (an ``(N, N)`` matrix as JSON would be
+hundreds of megabytes at KITTI scale). Nothing is recomputed: every number
+comes from the run folder. plotly is an optional dependency (extra
+``report``); without it :func:`build_report` says how to install it.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.runs import Run, conventions_lines, load_run
+from lidar_iris_eval.runs.table import TABLE_COLUMNS, cell, table_row
+
+PLOTLY_JS = "plotly.min.js"
+INSTALL_HINT = "the HTML report needs plotly: pip install 'lidar_iris_eval[report]'"
+#: largest side of an embedded affinity image, in pixels (tiles keep the minimum distance)
+MAX_AFFINITY_PX = 600
+COLORS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442", "#000000")
+
+
+def _plotly():
+    try:
+        import plotly
+        import plotly.graph_objects as go
+    except ImportError:
+        raise LirisError("liris report", INSTALL_HINT) from None
+    return plotly, go
+
+
+def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = None,
+                 overwrite: bool = False, max_affinity_px: int = MAX_AFFINITY_PX) -> Path:
+    """Write ``index.html`` and ``plotly.min.js`` for the run in ``run_dir``.
+
+    ``out`` defaults to ``<run>/report``. An existing report folder is only
+    replaced with ``overwrite``. The folder is assembled aside and moved into
+    place in one rename, so a reader never sees half a report.
+    """
+    plotly, go = _plotly()
+    run = load_run(run_dir)
+    out = Path(out) if out is not None else run.path / "report"
+    if out.exists() and not overwrite:
+        raise LirisError(out, "report folder already exists; pass --overwrite to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; a report is meant to be shared
+    try:
+        (tmp / PLOTLY_JS).write_text(plotly.offline.get_plotlyjs(), encoding="utf-8")
+        (tmp / "index.html").write_text(render_page(run, go, max_affinity_px), encoding="utf-8")
+        if out.exists():
+            old = out.parent / f".{out.name}.old-{os.getpid()}"
+            os.rename(out, old)
+            os.rename(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out / "index.html"
+
+
+def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
+    """The page's HTML text."""
+    sequence = run.config.get("sequence") or run.metrics.get("sequence") or {}
+    title = f"liris report: {run.name}"
+    version = html.escape(str(run.metrics.get("version")))
+    sections = [
+        f"<h1>{html.escape(title)}</h1>",
+        f"<p class='meta'>sequence {html.escape(str(sequence.get('name')))} "
+        f"({sequence.get('n_frames')} frames) &middot; liris {version}"
+        f" &middot; created {html.escape(str(run.metrics.get('created')))}</p>",
+        "<h2>Metrics</h2>", metrics_table(run),
+        "<h2>Conventions</h2>", "<ul>" + "".join(
+            f"<li>{html.escape(line)}</li>" for line in conventions_lines(run.conventions,
+                                                                          run.config)) + "</ul>",
+    ]
+    for protocol in (1, 2):
+        if run.descriptors(protocol):
+            sections += [f"<h2>PR curves, protocol {protocol}</h2>",
+                         _div(pr_figure(run, protocol, go), f"pr-protocol{protocol}")]
+    if run.descriptors(1) and run.has("positions.npy"):
+        sections += ["<h2>Trajectory: protocol 1 at each method's max-F1 threshold</h2>",
+                     "<p>Click a legend entry to show or hide it; one method is shown at first."
+                     "</p>", _div(trajectory_figure(run, go), "trajectory")]
+    if run.descriptors(2):
+        sections += ["<h2>Affinity matrices (protocol 2)</h2>",
+                     "<p>Similarity = 1 &minus; min-max normalised distance (bright = similar);"
+                     " tiles show their most similar pair.</p>", affinity_images(run,
+                                                                                 max_affinity_px)]
+    body = "\n".join(sections)
+    return f"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>{html.escape(title)}</title>
+<script src="{PLOTLY_JS}"></script>
+<style>
+body {{ font-family: sans-serif; margin: 1.5em auto; max-width: 1100px; color: #222; }}
+table {{ border-collapse: collapse; font-size: 0.9em; }}
+th, td {{ padding: 0.25em 0.6em; border-bottom: 1px solid #ddd; }}
+td.num {{ text-align: right; font-variant-numeric: tabular-nums; }}
+.meta {{ color: #666; }}
+figure {{ display: inline-block; margin: 0.5em; text-align: center; }}
+figure img {{ width: 320px; image-rendering: pixelated; border: 1px solid #ccc; }}
+</style>
+</head>
+<body>
+{body}
+</body>
+</html>
+"""
+
+
+def _div(fig, div_id: str) -> str:
+    return fig.to_html(full_html=False, include_plotlyjs=False, div_id=div_id,
+                       config={"displaylogo": False, "responsive": True})
+
+
+def metrics_table(run: Run) -> str:
+    """The summary table (the same cells as ``liris show``) as HTML."""
+    rows = [table_row(r) for r in run.rows]
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in TABLE_COLUMNS)
+    body = []
+    for r in rows:
+        cells = []
+        for c in TABLE_COLUMNS:
+            value = r.get(c)
+            numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+            cls = " class='num'" if numeric else ""
+            cells.append(f"<td{cls}>{html.escape(cell(value))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return (f"<table id='metrics'><thead><tr>{head}</tr></thead>"
+            f"<tbody>{''.join(body)}</tbody></table>")
+
+
+def pr_figure(run: Run, protocol: int, go):
+    """Precision against recall from each descriptor's ``pr.csv``."""
+    fig = go.Figure()
+    for k, name in enumerate(run.descriptors(protocol)):
+        row = run.row(protocol, name)
+        curve = run.pr(protocol, name)
+        fig.add_trace(go.Scatter(
+            x=curve["recall"], y=curve["precision"], mode="lines",
+            name=f"{name}/{row.get('preset')} (AP {cell(row.get('ap'))})",
+            line={"color": COLORS[k % len(COLORS)], "shape": "hv"},
+            customdata=curve["threshold"],
+            hovertemplate="recall %{x:.4f}<br>precision %{y:.4f}<br>threshold %{customdata:.6g}"))
+    fig.update_layout(xaxis={"title": "recall", "range": [0, 1.02]},
+                      yaxis={"title": "precision", "range": [0, 1.02]},
+                      height=430, margin={"l": 60, "r": 20, "t": 20, "b": 50},
+                      legend={"x": 0.01, "y": 0.02, "bgcolor": "rgba(255,255,255,0.7)"})
+    return fig
+
+
+def trajectory_figure(run: Run, go):
+    """The path in the ground plane with TP / FP / missed-revisit markers per descriptor."""
+    from lidar_iris_eval.evaluation.ground_truth import ground_plane_axes
+    from lidar_iris_eval.plotting.trajectory import as_bool, outcomes
+
+    frame = run.conventions.get("pose_frame", "camera")
+    a, b = ground_plane_axes(frame if frame in ("camera", "lidar") else "camera")
+    xy = np.asarray(run.positions(), dtype=np.float64)[:, [a, b]]
+    fig = go.Figure()
+    fig.add_trace(go.Scatter(x=xy[:, 0], y=xy[:, 1], mode="lines", name="path",
+                               line={"color": "#aaaaaa", "width": 1}, hoverinfo="skip"))
+    styles = {"tp": ("true positive", "circle", "#009E73"),
+              "fp": ("false positive", "x", "#D55E00"),
+              "missed": ("missed revisit", "circle-open", "#0072B2")}
+    for k, name in enumerate(run.descriptors(1)):
+        row = run.row(1, name)
+        threshold = row.get("f1_threshold")
+        matches = run.matches(name)
+        if threshold is None:
+            threshold = -np.inf
+        result = outcomes(matches, float(threshold))
+        revisit = np.zeros(len(xy), dtype=bool)
+        revisit[matches["query"].to_numpy(dtype=np.int64)[as_bool(matches["is_revisit"])]] = True
+        for kind, (label, symbol, color) in styles.items():
+            idx = np.asarray(getattr(result, kind), dtype=np.int64)
+            fig.add_trace(go.Scatter(
+                x=xy[idx, 0], y=xy[idx, 1], mode="markers", legendgroup=name,
+                name=f"{name}: {label} ({len(idx)})", visible=True if k == 0 else "legendonly",
+                marker={"symbol": symbol, "color": color, "size": 6 if kind != "tp" else 4},
+                text=[f"query {i}" for i in idx], hoverinfo="text"))
+    axis = "xyz"
+    fig.update_layout(xaxis={"title": f"{axis[a]} (m, {frame} frame)"},
+                      yaxis={"title": f"{axis[b]} (m)", "scaleanchor": "x", "scaleratio": 1},
+                      height=560, margin={"l": 60, "r": 20, "t": 20, "b": 50})
+    return fig
+
+
+def affinity_png(matrix: np.ndarray, max_px: int = MAX_AFFINITY_PX) -> bytes:
+    """A PNG of the similarity image of an ``(N, N)`` distance matrix, at most ``max_px`` wide."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lidar_iris_eval.plotting.affinity import block_reduce, similarity
+
+    n = matrix.shape[0]
+    block = max(1, int(np.ceil(n / max_px)))
+    reduced = block_reduce(np.asarray(matrix), block, "min")
+    image = similarity(reduced)
+    buffer = io.BytesIO()
+    plt.imsave(buffer, image, cmap="viridis", vmin=0.0, vmax=1.0, format="png")
+    return buffer.getvalue()
+
+
+def affinity_images(run: Run, max_px: int = MAX_AFFINITY_PX) -> str:
+    figures = []
+    for name in run.descriptors(2):
+        row = run.row(2, name)
+        if not run.has(f"protocol2/{name}/affinity.npy"):
+            continue
+        data = base64.b64encode(affinity_png(run.affinity(name), max_px)).decode("ascii")
+        caption = html.escape(f"{name}/{row.get('preset')}")
+        figures.append(f"<figure><img alt='affinity {caption}' src='data:image/png;base64,"
+                       f"{data}'><figcaption>{caption}</figcaption></figure>")
+    return "<div id='affinity'>" + "".join(figures) + "</div>"
