@@ -116,3 +116,35 @@ def test_kitti00_counts_under_the_presets(kitti_dir):
     # the same rules at 4 m give the 790 loops quoted for KITTI 00 (irapkaist/scancontext#12)
     assert count_revisits(positions, with_overrides(PRESETS["scancontext-eval"], radius=4.0)) \
         == 790
+
+
+def test_gt_convention_on_kitti00_poses(kitti_dir, capsys):
+    import json
+
+    from conftest import run_cli
+
+    poses = kitti_dir / "poses" / "00.txt"
+    code, out, err = run_cli(["gt", "--poses", poses, "--convention", "scancontext-eval",
+                              "--json"], capsys)
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["convention"] == "scancontext-eval"
+    assert (summary["radius_m"], summary["distance"]) == (5.0, "planar")
+    assert summary["revisit_queries"] == 803 and summary["queries"] == 4541 - 49 - 1
+    # an explicit option wins over the preset and renames it
+    code, out, _ = run_cli(["gt", "--poses", poses, "--convention", "scancontext-eval",
+                            "--radius", "4", "--json"], capsys)
+    summary = json.loads(out)
+    assert summary["convention"] == "scancontext-eval+custom"
+    assert summary["revisit_queries"] == 790
+
+
+def test_gt_convention_errors(tmp_path, capsys):
+    from conftest import assert_one_line_error, run_cli
+
+    poses = tmp_path / "p.txt"
+    np.savetxt(poses, np.tile(np.eye(4)[:3].ravel(), (5, 1)))
+    code, _, err = run_cli(["gt", "--poses", poses, "--convention", "mapclosures"], capsys)
+    assert_one_line_error(code, err, "--convention mapclosures", "poses alone")
+    code, _, err = run_cli(["gt", "--poses", poses, "--convention", "logg3d"], capsys)
+    assert_one_line_error(code, err, "needs scan times")

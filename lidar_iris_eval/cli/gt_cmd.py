@@ -9,11 +9,12 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from lidar_iris_eval.cli.options import ground_truth_options, parse_exclude
+from lidar_iris_eval.cli.options import current_convention, ground_truth_options, parse_exclude
 from lidar_iris_eval.cli.output import echo_json, echo_table
 from lidar_iris_eval.cli.sequence_options import sequence_options
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.errors import options as option_names
+from lidar_iris_eval.evaluation.conventions import convention_counts, with_overrides
 from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
 
@@ -36,12 +37,17 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
     Pairs are ordered pairs (i, j), i != j, positive when closer than --radius;
     a revisit query has a positive partner at least --exclude frames earlier.
     """
-    exclude_frames, exclude_name = parse_exclude(exclude)
+    conv = current_convention()  # --convention (issue 17): per-query rules, windows in seconds
+    seconds = conv.exclude_seconds is not None
+    exclude_frames, exclude_name = (1, "seconds") if seconds else parse_exclude(exclude)
     positions, source, seq, pose_frame = _positions(
         sequence, poses_path, calib_path, pose_frame, reader_options
     )
     gt = compute_ground_truth(positions, radius, exclude_frames, distance, pose_frame)
     summary = {"source": str(source), **gt.summary(), "exclude_preset": exclude_name}
+    if conv.name != "liris":
+        conv = with_overrides(conv, pose_frame=pose_frame)
+        summary.update(convention_counts(positions, conv, getattr(seq, "times", None)))
     if check_scans:
         if seq is None:
             raise LirisError("--check-scans", "needs a SEQUENCE folder, not only --poses")

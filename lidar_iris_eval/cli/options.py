@@ -5,22 +5,29 @@ from __future__ import annotations
 import functools
 
 import click
+from click.core import ParameterSource
 
 from lidar_iris_eval.errors import LirisError
 
 #: named exclusion windows (PROTOCOLS.md): the paper's text vs the authors' code
 EXCLUDE_PRESETS = {"paper": 30, "reference": 300}
+#: where the resolved convention preset is kept for the command body (click ctx.meta)
+CONVENTION_KEY = "liris.convention"
 
 
 def parse_exclude(value: str) -> tuple[int, str]:
     """``"paper"``, ``"reference"`` or an integer to ``(E, name)``."""
     if value in EXCLUDE_PRESETS:
         return EXCLUDE_PRESETS[value], value
+    if isinstance(value, str) and value.strip().lower().endswith("s"):
+        raise LirisError(f"--exclude {value}",
+                         "a window in seconds applies to liris eval (by scan times), not here")
     try:
         frames = int(value)
     except ValueError:
         raise LirisError(
-            f"--exclude {value}", "expected a number of frames, 'paper' (30) or 'reference' (300)"
+            f"--exclude {value}",
+            "expected a number of frames, 'paper' (30), 'reference' (300) or seconds such as 30s",
         ) from None
     if frames < 1:
         raise LirisError(f"--exclude {value}", "exclusion window must be at least 1 frame")
@@ -28,20 +35,96 @@ def parse_exclude(value: str) -> tuple[int, str]:
     return frames, named
 
 
+def parse_exclude_window(value: str) -> tuple[int | None, float | None, str]:
+    """Like :func:`parse_exclude`, also accepting seconds (``"30s"``): ``(E, seconds, name)``."""
+    text = str(value).strip()
+    if text.lower().endswith("s") and text not in EXCLUDE_PRESETS:
+        try:
+            seconds = float(text[:-1])
+        except ValueError:
+            raise LirisError(f"--exclude {value}", "expected seconds such as 30s") from None
+        if not seconds > 0:
+            raise LirisError(f"--exclude {value}", "exclusion window must be positive")
+        return None, seconds, "custom"
+    frames, name = parse_exclude(text)
+    return frames, None, name
+
+
+def _given(ctx: click.Context, name: str) -> bool:
+    """True when the user set ``name`` (command line, environment or a replayed config)."""
+    source = ctx.get_parameter_source(name)
+    return source not in (None, ParameterSource.DEFAULT)
+
+
+def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
+    """The :class:`~lidar_iris_eval.evaluation.conventions.Convention` of a command call.
+
+    A preset's values fill every ground-truth option the user did not set;
+    options set explicitly win (the result is then named ``<preset>+custom``).
+    Without a preset, the options themselves form the convention ("liris"
+    with the given values). ``kwargs`` is updated in place with the values
+    used; a window in seconds leaves ``exclude`` as the string ``"<T>s"``.
+    """
+    from lidar_iris_eval.evaluation.conventions import get_convention, same_rules, with_overrides
+
+    base = get_convention(name or "liris")
+    values = {}
+    if _given(ctx, "radius") or name is None:
+        values["radius"] = kwargs["radius"]
+    if _given(ctx, "exclude") or name is None:
+        frames, seconds, _ = parse_exclude_window(kwargs["exclude"])
+        values["exclude"] = frames
+        values["exclude_seconds"] = seconds
+    for key in ("distance", "pose_frame", "recall_denominator"):
+        if key in kwargs and (_given(ctx, key) or name is None):
+            values[key] = kwargs[key]
+    conv = with_overrides(base, **values)
+    if name is None:  # no preset asked: "liris" when the options are its defaults
+        conv = with_overrides(conv, name="liris" if same_rules(conv, base) else "custom",
+                              source="command-line options")
+    kwargs["radius"] = conv.radius
+    kwargs["distance"] = conv.distance
+    kwargs["pose_frame"] = conv.pose_frame
+    if "recall_denominator" in kwargs:
+        kwargs["recall_denominator"] = conv.recall_denominator
+    if conv.exclude_seconds is not None:
+        kwargs["exclude"] = f"{conv.exclude_seconds:g}s"
+    elif not (_given(ctx, "exclude") or name is None) or kwargs["exclude"] is None:
+        kwargs["exclude"] = str(conv.exclude)
+    return conv
+
+
 def ground_truth_options(func):
-    """``--radius``, ``--exclude``, ``--distance`` and ``--pose-frame``."""
+    """``--radius``, ``--exclude``, ``--distance``, ``--pose-frame`` and ``--convention``.
+
+    The command receives the effective values (a ``--convention`` preset fills
+    the options not given); the resolved convention object is in
+    ``click.get_current_context().meta[CONVENTION_KEY]``.
+    """
 
     @click.option("--radius", type=float, default=4.0, show_default=True,
                   help="A pair is positive when closer than this (metres).")
     @click.option("--exclude", "exclude", default="paper", show_default=True,
-                  help="Exclusion window E in frames, or 'paper' (30) / 'reference' (300).")
+                  help="Exclusion window E in frames, 'paper' (30) / 'reference' (300), or "
+                       "seconds by scan time such as 30s (liris eval).")
     @click.option("--distance", type=click.Choice(["3d", "planar"]), default="3d",
                   show_default=True, help="3-D distance, or planar in the ground plane.")
     @click.option("--pose-frame", type=click.Choice(["camera", "lidar"]), default="camera",
                   show_default=True,
                   help="Measure distances between camera poses (KITTI, the paper) or LiDAR poses.")
+    @click.option("--convention", "convention_name", default=None, metavar="NAME",
+                  help="A peer's ground-truth convention: liris, scancontext-eval, logg3d, "
+                       "iris-cpp (README: Conventions); options given explicitly win.")
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
+        ctx = click.get_current_context()
+        name = kwargs.pop("convention_name")
+        ctx.meta[CONVENTION_KEY] = resolve_convention(ctx, name, kwargs)
         return func(*args, **kwargs)
 
     return wrapper
+
+
+def current_convention():
+    """The convention resolved by :func:`ground_truth_options` for the running command."""
+    return click.get_current_context().meta.get(CONVENTION_KEY)

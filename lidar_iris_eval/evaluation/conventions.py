@@ -143,9 +143,15 @@ def with_overrides(conv: Convention, **values) -> Convention:
         fields["exclude"] = None
     fields.update(given)
     changed = any(fields[k] != getattr(conv, k) for k in given)
-    if changed:
+    if changed and "name" not in given:
         fields["name"] = f"{conv.name}+custom"
     return Convention(**fields)
+
+
+def same_rules(a: Convention, b: Convention) -> bool:
+    """True when two conventions differ at most in name and source."""
+    skip = {"name", "source"}
+    return all(getattr(a, k) == getattr(b, k) for k in a.to_dict() if k not in skip)
 
 
 def database_limits(n_frames: int, conv: Convention, times: np.ndarray | None = None,
@@ -210,3 +216,24 @@ def revisit_queries_within(coords: np.ndarray, limits: np.ndarray, radius: float
     ok = early <= limits[late]
     revisit[late[ok]] = True
     return revisit
+
+
+def convention_counts(positions: np.ndarray, conv: Convention,
+                      times: np.ndarray | None = None) -> dict:
+    """Query and revisit counts under ``conv`` (what ``liris gt --convention`` prints).
+
+    ``positions`` are ``(N, 3)`` translations in ``conv.pose_frame``.
+    """
+    from lidar_iris_eval.evaluation.ground_truth import gt_coordinates
+
+    limits = database_limits(len(positions), conv, times)
+    coords = gt_coordinates(positions, conv.pose_frame, conv.distance)
+    revisit = revisit_queries_within(coords, limits, conv.radius, conv.inclusive_radius)
+    out = {"convention": conv.name, "queries": int(np.count_nonzero(limits >= 0)),
+           "revisit_queries": int(np.count_nonzero(revisit))}
+    if conv.exclude_seconds is not None:
+        out["exclude"] = f"{conv.exclude_seconds:g}s"
+        out["window_rule"] = conv.window_rule
+    if not conv.last_frame_query:
+        out["last_frame_query"] = False
+    return out
