@@ -37,6 +37,10 @@ def open_sequence(
     chosen = {k: options.pop(k) for k in selection.SELECTION_KEYS if k in options}
     if chosen:  # frames, every, min_distance: the same for every format
         return selection.select_frames(open_sequence(path, poses, calib, **options), **chosen)
+    from lidar_iris_eval.io.objects import is_objects_layout, open_objects
+
+    if is_objects_layout(path):  # the GOSMatch authors' bow.txt + centroids/
+        return open_objects(path, poses=poses, calib=calib, **options)
     if is_kitti_layout(path):
         if selection.needs_folder_reader(poses, options):  # TUM poses, times, pose options
             return selection.open_kitti_with_options(path, poses, calib, **options)

@@ -139,6 +139,7 @@ def open_objects(
     path: str | Path,
     poses: str | Path | None = None,
     calib: str | Path | None = None,
+    **options,
 ) -> ObjectSequence:
     """Open the authors' object layout with KITTI camera-frame poses.
 
@@ -148,8 +149,12 @@ def open_objects(
     poses : KITTI pose file (camera frame), default ``poses.txt`` in ``path``.
     calib : KITTI ``calib.txt`` with ``Tr``, default ``calib.txt`` in ``path``;
         needed to express the poses in the LiDAR frame the centroids are in.
+    options : none apply (scan-folder options are refused, naming them).
     """
     root = Path(path)
+    if options:
+        raise LirisError(root, f"{', '.join(sorted(options))}: not applicable to an object "
+                               f"layout (bow.txt + centroids/); it takes poses and calib only")
     if not is_objects_layout(root):
         raise LirisError(root, f"not an object layout: expected {BOW_FILE} and {CENTROIDS_DIR}/")
     bow_path = root / BOW_FILE

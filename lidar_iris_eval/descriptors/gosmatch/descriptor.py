@@ -174,6 +174,23 @@ class GOSMatch(Descriptor):
             )
         return objects_from_labels(scan.points, labels, self.cluster_settings)
 
+    def check_inputs(self, sequence: Any) -> None:
+        """The sequence must provide labels (clustered here) or objects: either will do."""
+        provides = set(getattr(sequence, "provides", {"points", "intensity"}))
+        if provides & self.inputs:
+            return
+        where = getattr(sequence, "labels_dir", None)
+        source = where if where is not None else getattr(sequence, "path", self.name)
+        raise LirisError(
+            source, f"{self.name} needs per-point SemanticKITTI labels "
+                    f"({'no .label files here' if where is not None else 'none in this input'}) "
+                    "or an object layout (bow.txt + centroids/)"
+        )
+
+    def describe(self, scan: Any) -> dict[str, np.ndarray]:
+        """The feature set of a scan as the pipeline reads it (object scan or labelled scan)."""
+        return self.compute(scan)
+
     def features(self, centroids: np.ndarray, classes: np.ndarray) -> dict[str, np.ndarray]:
         """The feature set of one scan from its (class-sorted) objects."""
         p = self.params

@@ -60,10 +60,10 @@ def _below(state, n: int):
 
 
 @nb.njit(cache=True, nogil=True)
-def draw_samples(state, n: int, iterations: int) -> np.ndarray:
-    """``(iterations, 3)`` triples of distinct indices in ``[0, n)``, uniformly."""
+def draw_samples(seed: int, query: int, candidate: int, n: int, iterations: int) -> np.ndarray:
+    """``(iterations, 3)`` triples of distinct indices in ``[0, n)`` for one pair, uniformly."""
     out = np.empty((iterations, 3), dtype=np.int64)
-    state = np.uint64(state)
+    state = pair_state(seed, query, candidate)
     for it in range(iterations):
         state, a = _below(state, n)
         state, b = _below(state, n - 1)
@@ -293,7 +293,7 @@ def verify_query(
         for p in range(m):
             src[p] = centroids[ca + ic[p]]
             dst[p] = qx[iq[p]]
-        samples = draw_samples(pair_state(seed, query, c), m, iterations)
+        samples = draw_samples(seed, query, c, m, iterations)
         T, inl, r = ransac_from_samples(src, dst, samples, threshold)
         n_in = int(inl.sum())
         inliers[t] = n_in

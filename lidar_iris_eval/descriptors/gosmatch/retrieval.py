@@ -7,8 +7,10 @@ per query costs O(N^2 log N). :class:`PrefixKNN` keeps k-d trees over aligned
 power-of-two blocks of frames (built on first use and kept): any prefix
 ``[0, n)`` is the union of at most log2(n) such blocks plus a short tail that
 is searched brute force, so every query is an exact k-NN over exactly the
-allowed frames. Results are ordered by (distance, frame index), so ties break
-the same way whatever the block layout.
+allowed frames. Each tree is asked for k + 1 rows; when the last two tie, every
+row within that distance is fetched, so rows tied at the cut-off are never
+lost. Results are ordered by (distance, frame index), with one distance
+formula for all rows: ties break the same way whatever the block layout.
 """
 
 from __future__ import annotations
@@ -61,18 +63,23 @@ class PrefixKNN:
             return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.float64)
         x = np.asarray(x, dtype=np.float64)
         blocks, tail = self.blocks(n)
-        idx_parts, dist_parts = [], []
+        idx_parts = []
         for start, size in blocks:
-            kk = min(k, size)
-            dist, idx = self._tree(start, size).query(x, k=kk)
-            idx_parts.append(np.atleast_1d(idx).astype(np.int64) + start)
-            dist_parts.append(np.atleast_1d(dist).astype(np.float64))
+            tree = self._tree(start, size)
+            kk = min(k + 1, size)
+            dist, idx = tree.query(x, k=kk)
+            dist, idx = np.atleast_1d(dist), np.atleast_1d(idx).astype(np.int64)
+            if kk == k + 1 and dist[-1] <= dist[-2]:
+                # rows tied with the k-th may hide beyond it: take every row that close
+                idx = np.asarray(tree.query_ball_point(x, dist[-2] * (1 + 1e-9) + 1e-12),
+                                 dtype=np.int64)
+            idx_parts.append(idx + start)
         if tail < n:
-            diff = self.data[tail:n] - x
             idx_parts.append(np.arange(tail, n, dtype=np.int64))
-            dist_parts.append(np.sqrt(np.einsum("ij,ij->i", diff, diff)))
         idx = np.concatenate(idx_parts)
-        dist = np.concatenate(dist_parts)
+        # one distance formula for every row, so ties compare equal across blocks
+        diff = self.data[idx] - x
+        dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
         order = np.lexsort((idx, dist))[:k]
         return idx[order], dist[order]
 
