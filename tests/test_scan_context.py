@@ -18,6 +18,7 @@ from lidar_iris_eval.descriptors.scan_context import (
     kernels,
     polar_angle_deg,
     polar_context,
+    reference_loop,
     ring_key,
     sector_key,
     voxel_downsample,
@@ -60,25 +61,13 @@ def _records(desc: ScanContext, sc: np.ndarray) -> np.ndarray:
 
 
 def _naive_per_shift(q: np.ndarray, c: np.ndarray, divide_by: str = "valid") -> np.ndarray:
-    """d at every C++ shift k (q against roll(c, k)), plainly in float64; inf if unusable."""
-    q = q.astype(np.float64)
-    c = c.astype(np.float64)
-    n = q.shape[1]
-    out = np.full(n, math.inf)
-    for k in range(n):
-        cs = np.roll(c, k, axis=1)
-        na, nb = np.linalg.norm(q, axis=0), np.linalg.norm(cs, axis=0)
-        valid = (na > 0) & (nb > 0)
-        if valid.any():
-            cos = (q * cs).sum(axis=0)[valid] / (na * nb)[valid]
-            out[k] = 1.0 - cos.sum() / (valid.sum() if divide_by == "valid" else n)
-    return out
+    """d at every C++ shift k (q against roll(c, k)): the descriptor's reference loop."""
+    return reference_loop.per_shift_distances(q, c, divide_by)
 
 
 def _sector_key_start(q: np.ndarray, c: np.ndarray) -> int:
     """The C++ alignment: first shift minimising ||v_q - roll(v_c, s)||."""
-    vq, vc = q.astype(np.float64).mean(axis=0), c.astype(np.float64).mean(axis=0)
-    return min(range(len(vq)), key=lambda s: (np.linalg.norm(vq - np.roll(vc, s)), s))
+    return reference_loop.sector_key_start(q, c)
 
 
 def _naive(q, c, search: str, radius: int = 3, divide_by: str = "valid"):

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import click
+import numpy as np
 
 from lidar_iris_eval.bench import (
     DEFAULT_DESCRIPTORS,
@@ -16,6 +17,7 @@ from lidar_iris_eval.bench import (
     simulated_sequence,
     summary_rows,
 )
+from lidar_iris_eval.bench.extraction import cpp_rows, load_bin_scans, measure_against_cpp
 from lidar_iris_eval.cli.output import (
     check_output_file,
     echo_table,
@@ -27,6 +29,8 @@ from lidar_iris_eval.evaluation.report import json_ready
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 
 DEFAULT_FRAMES = 4541
+#: azimuth steps of a full-resolution simulated HDL-64E scan (~120k points, like KITTI)
+FULL_AZIMUTH_STEPS = 2048
 
 
 def build_bench_descriptors(text: str, preset: str | None):
@@ -76,10 +80,17 @@ def build_bench_descriptors(text: str, preset: str | None):
 @click.option("--in-process", is_flag=True,
               help="Run the protocols in this process (faster to start; peak memory then "
                    "includes everything before).")
+@click.option("--cpp-scans", type=int, default=4, show_default=True,
+              help="Full-resolution scans timed on one core against the authors' C++ "
+                   "figures (0: skip).")
+@click.option("--scans", "scans_dir", type=click.Path(path_type=Path, file_okay=False),
+              default=None,
+              help="Folder of KITTI .bin scans for the C++ comparison [default: simulated "
+                   "full-resolution HDL-64E scans].")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or status lines.")
 def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence, work_dir,
             json_path, exclude, radius, skip_protocol1, skip_protocol2, loop_pairs,
-            kernel_queries, workers, block_pairs, in_process, quiet):
+            kernel_queries, workers, block_pairs, in_process, cpp_scans, scans_dir, quiet):
     """Time extraction, the batched kernels and protocols 1/2 of each descriptor.
 
     By default a 4541-frame sequence (KITTI 00's length) is simulated once into
@@ -113,17 +124,32 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
         sequence, sim_s = simulated_sequence(work_dir, sim_preset, frames or DEFAULT_FRAMES,
                                              azimuth_steps, progress=not quiet)
         sim = {"preset": sim_preset, "simulate_s": sim_s, "reused": sim_s == 0.0}
+    if cpp_scans < 0:
+        raise LirisError(f"--cpp-scans {cpp_scans}", "must be >= 0")
+    if scans_dir is not None and not scans_dir.is_dir():
+        raise LirisError(str(scans_dir), "no such folder (--scans)")
     seq = open_sequence(sequence)
     report = run_benchmark(seq, descriptors, work_dir, settings, progress=not quiet, log=log)
     report["argv"] = [Path(sys.argv[0]).name, *sys.argv[1:]]
     report["sequence"]["simulated"] = sim
+    cpp = None
+    if cpp_scans:
+        cpp = compare_with_cpp(descriptors, cpp_scans, scans_dir, work_dir, log, quiet)
+        report["cpp_comparison"] = cpp
     rows = summary_rows(report)
     report = json_ready(report)
     if json_path == "-":
         click.echo(json.dumps(report, indent=2))
         click.echo(format_table(rows), err=True)
+        if cpp is not None:
+            click.echo(format_table(cpp_rows(cpp)), err=True)
         return
     echo_table(rows)  # first: a failing --json write must not lose the table too
+    if cpp is not None:
+        click.echo(f"\nper full-resolution scan on one core ({cpp['scans']} scans of "
+                   f"{cpp['points_median']:.0f} points, {cpp['scan_source']}), "
+                   "ratio ours / C++ (< 1: faster):")
+        echo_table(cpp_rows(cpp))
     for bar in report["bars"]:
         verdict = "met" if bar["met"] else "MISSED"
         click.echo(f"bar: {bar['bar']}: {bar['value']:.4g} (limit {bar['limit']:g}) {verdict}")
@@ -131,3 +157,29 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
     click.echo(f"load average: start {load['start']}, end {load['end']}")
     if json_path is not None:
         write_output_file(json_path, json.dumps(report, indent=2) + "\n")
+
+
+def compare_with_cpp(descriptors, count: int, scans_dir: Path | None, work_dir: Path, log,
+                     quiet: bool) -> dict:
+    """Time each descriptor's ``reference`` preset on full-resolution scans vs the C++."""
+    from lidar_iris_eval.descriptors import get_descriptor
+    from lidar_iris_eval.io import open_sequence
+
+    if scans_dir is not None:
+        scans = load_bin_scans(scans_dir, count)
+        if not scans:
+            raise LirisError(str(scans_dir), "no .bin scans (--scans)")
+        source = str(scans_dir)
+    else:
+        log(f"{count} full-resolution scans (HDL-64E, {FULL_AZIMUTH_STEPS} azimuth steps)")
+        path, _ = simulated_sequence(work_dir, "kitti-scale", count, FULL_AZIMUTH_STEPS,
+                                     progress=not quiet)
+        seq = open_sequence(path)
+        scans = [np.asarray(seq[i])[:, :3] for i in range(len(seq))]
+        source = "simulated kitti-scale, full resolution"
+    names = list(dict.fromkeys(d.name for d in descriptors))
+    refs = [get_descriptor(name, preset="reference") for name in names]
+    log(f"extraction and single-pair time on one core: {', '.join(names)}")
+    result = measure_against_cpp(refs, scans)
+    result["scan_source"] = source
+    return result
