@@ -44,7 +44,7 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error, warn
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: extract_s is per-thread CPU time, compilation excluded
 ENV_VAR = "LIRIS_CACHE_DIR"
 DEFAULT_DIRNAME = ".liris-cache"
 _META = "__meta__"

@@ -192,15 +192,15 @@ def test_protocol2_counts_equal_liris_gt(simulated, tmp_path, capsys, extra):
 
 def test_failed_run_leaves_no_folder_and_keeps_the_old_one(seq_dir, tmp_path, capsys,
                                                            monkeypatch):
-    from lidar_iris_eval.cli import eval_cmd
     from lidar_iris_eval.errors import LirisError
+    from lidar_iris_eval.evaluation import evaluate as evaluate_module
 
     def boom(*args, **kwargs):
         raise LirisError("disk", "full")
 
     assert run_cli(eval_args(seq_dir, tmp_path), capsys)[0] == 0
     before = (tmp_path / "run" / "metrics.json").read_text()
-    monkeypatch.setattr(eval_cmd, "write_protocol2", boom)
+    monkeypatch.setattr(evaluate_module, "write_protocol2", boom)
     code, _, err = run_cli(eval_args(seq_dir, tmp_path, "--overwrite"), capsys)
     assert_one_line_error(code, err, "disk: full")
     assert (tmp_path / "run" / "metrics.json").read_text() == before

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import sys
 import textwrap
 import warnings
@@ -50,13 +51,15 @@ class ClassCentroids(Descriptor):
     name = "class-centroids"
     params_type = ClassParams
     inputs = frozenset({"points", "labels"})
-    calls = 0
-    fail_at: int | None = None
+    #: sizes of the scans computed (every scan of labelled_sequence has its own size), so
+    #: counts do not depend on untimed warm-up calls of the extractor
+    seen: set = set()
+    fail_at_size: int | None = None
 
     def compute(self, scan):
-        ClassCentroids.calls += 1
-        if self.fail_at is not None and ClassCentroids.calls > self.fail_at:
+        if self.fail_at_size is not None and len(scan.points) == self.fail_at_size:
             raise KeyboardInterrupt  # simulated interruption mid-run
+        ClassCentroids.seen.add(len(scan.points))
         sem = scan.labels & 0xFFFF
         # keep a varying number of points per scan so K varies: drop class 12 on odd sizes
         present = [c for c in self.params.classes if np.any(sem == c)]
@@ -167,11 +170,12 @@ def test_ragged_features_round_trip_through_extract_and_cache(tmp_path):
     counts = [len(w["centroids"]) for w in want]
     assert len(set(counts)) > 1  # the point of the test: K varies
     cache = DescriptorCache(tmp_path / "cache")
-    ClassCentroids.calls = 0
+    ClassCentroids.seen = set()
     db = extract(seq, ClassCentroids(), cache=cache, chunk_size=2)
-    assert ClassCentroids.calls == 9 and isinstance(db.descriptors, RaggedFeatures)
+    assert len(ClassCentroids.seen) == 9 and isinstance(db.descriptors, RaggedFeatures)
+    ClassCentroids.seen = set()
     again = extract(seq, ClassCentroids(), cache=cache)
-    assert ClassCentroids.calls == 9 and again.from_cache
+    assert ClassCentroids.seen == set() and again.from_cache
     for feats in (db.descriptors, again.descriptors):
         assert len(feats) == 9
         assert feats.counts("centroids").tolist() == counts
@@ -190,18 +194,17 @@ def test_ragged_features_round_trip_through_extract_and_cache(tmp_path):
 def test_ragged_extraction_resumes_after_interruption(tmp_path):
     seq = open_sequence(labelled_sequence(tmp_path / "s", n=10))
     cache = DescriptorCache(tmp_path / "cache")
-    ClassCentroids.calls = 0
     interrupted = ClassCentroids()
-    interrupted.fail_at = 7  # chunks [0,3) and [3,6) are stored, [6,9) is not
+    interrupted.fail_at_size = len(seq[7])  # chunks [0,3) and [3,6) are stored, [6,9) is not
     with pytest.raises(KeyboardInterrupt):
         extract(seq, interrupted, cache=cache, chunk_size=3)
     key = cache_key(seq, ClassCentroids())
     assert len(list(cache.partial_dir(key).glob("chunk-*.npz"))) == 2
-    ClassCentroids.calls = 0
+    ClassCentroids.seen = set()
     with warnings.catch_warnings():
         warnings.simplefilter("error", LirisWarning)
         db = extract(seq, ClassCentroids(), cache=cache, chunk_size=3)
-    assert ClassCentroids.calls == 4  # only scans 6..9
+    assert ClassCentroids.seen == {len(seq[i]) for i in range(6, 10)}  # only scans 6..9
     want = expected_features(seq)
     for i in range(10):
         np.testing.assert_array_equal(db.descriptors[i]["centroids"], want[i]["centroids"])
@@ -235,10 +238,10 @@ PLUGIN_DESCRIPTOR = textwrap.dedent("""
     class Scaled(Descriptor):
         name = "scaled"
         params_type = P
-        calls = 0
+        seen = set()  # sizes of the scans computed
 
         def compute(self, points):
-            Scaled.calls += 1
+            Scaled.seen.add(len(points))
             return kernels.describe(points)
 
         def distance(self, a, b):
@@ -263,16 +266,18 @@ def test_editing_a_helper_module_of_a_method_package_changes_the_key(tmp_path, m
     extract_module._source_hash.cache_clear()
     before = cache_key(seq, desc).digest()
     extract(seq, desc, cache=cache)
-    assert cls.calls == 4
-    extract(seq, desc, cache=cache)
-    assert cls.calls == 4  # cached
+    assert len(cls.seen) == 4
+    cls.seen = set()
+    assert extract(seq, desc, cache=cache).from_cache and cls.seen == set()
 
     # edit only the helper module (not the descriptor's own file)
     (pkg / "kernels.py").write_text("def describe(points):\n    return 2 * points.mean(0)\n")
     extract_module._source_hash.cache_clear()  # a new process would hash afresh
     after = cache_key(seq, desc).digest()
     assert after != before
-    extract(seq, desc, cache=cache)
-    assert cls.calls == 8  # rebuilt, not served stale
+    importlib.reload(sys.modules["scaled_method.kernels"])  # what a new process would run
+    db = extract(seq, desc, cache=cache)
+    assert not db.from_cache and len(cls.seen) == 4  # rebuilt, not served stale
+    np.testing.assert_allclose(db.descriptors[0], 2 * seq[0].mean(0), rtol=1e-6)
     for name in [m for m in sys.modules if m.startswith("scaled_method")]:
         monkeypatch.delitem(sys.modules, name)

@@ -17,13 +17,15 @@ from lidar_iris_eval.errors import LirisError, check_writable_dir, file_in_the_w
 
 def format_value(value) -> str:
     """Compact text for a table cell: thousands separators, 4 significant decimals."""
+    if value is None:
+        return "n/a"
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, int):
         return f"{value:,}"
     if isinstance(value, float):
         if math.isnan(value):
-            return "-"
+            return "n/a"  # an undefined metric, never 0
         return f"{value:.4f}" if abs(value) < 1e4 else f"{value:,.0f}"
     return str(value)
 

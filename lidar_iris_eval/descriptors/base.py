@@ -71,11 +71,15 @@ class Verification:
         frame into the query's; NaN entries where unknown (e.g. translation of
         a yaw-only estimate).
     inliers : ``(k,)`` int64 inlier count of the geometric check (0 if none).
+    yaw_deg : optional ``(k,)`` yaw in the descriptor convention (module
+        docstring), for global descriptors whose native output is a yaw; it
+        is reported as is in ``matches.csv`` (no round trip through ``pose``).
     """
 
     score: np.ndarray
     pose: np.ndarray
     inliers: np.ndarray
+    yaw_deg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         k = len(self.score)
@@ -196,14 +200,25 @@ class Descriptor(abc.ABC):
         """Up to ``k`` candidates among frames ``[0, n_allowed)``, best first.
 
         Returns ``(indices (k',) int64, retrieval distances (k',) float64)``.
-        Only methods with a retrieval stage implement it.
+        Only methods with a retrieval stage implement it. For descriptors
+        written before this interface, a ``candidates(query_descs,
+        database_descs, k)`` method is used (distances then NaN).
         """
-        raise NotImplementedError(f"{self.name} has no retrieval stage")
+        legacy = getattr(self, "candidates", None)
+        if not callable(legacy):
+            raise NotImplementedError(f"{self.name} has no retrieval stage")
+        idx = np.asarray(legacy(db[query: query + 1], db[:n_allowed], k), dtype=np.int64)
+        idx = idx.reshape(-1)
+        return idx, np.full(len(idx), np.nan)
 
     @classmethod
     def has_retrieval(cls) -> bool:
-        """True when the class implements :meth:`retrieve`."""
-        return cls.retrieve is not Descriptor.retrieve
+        """True when the class implements :meth:`retrieve` (or legacy ``candidates``)."""
+        return cls.retrieve is not Descriptor.retrieve or callable(getattr(cls, "candidates", None))
+
+    def default_candidates(self) -> int:
+        """Candidates per query when none are asked for: ``params.num_candidates`` or 10."""
+        return int(getattr(self.params, "num_candidates", 10))
 
     def verify(self, db: Any, query: int, candidates: np.ndarray) -> Verification:
         """Score candidates of ``query`` (smaller = more similar) with a pose each.
@@ -216,8 +231,9 @@ class Descriptor(abc.ABC):
         if len(candidates) == 0:
             return Verification(np.empty(0), np.empty((0, 4, 4)), np.empty(0, np.int64))
         dist, yaw = self.distances(db[query], db[candidates])
+        yaw = np.asarray(yaw, dtype=np.float64)
         return Verification(np.asarray(dist, dtype=np.float64), yaw_to_pose(yaw),
-                            np.zeros(len(candidates), np.int64))
+                            np.zeros(len(candidates), np.int64), yaw)
 
     def distances(self, query: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One query against a stacked database: ``(M,)`` distances and yaws.

@@ -29,6 +29,16 @@ Summary numbers (definitions used in every output)
 * **EP** – extended precision ``(P_R0 + R@100P) / 2`` where ``P_R0`` is the
   precision at the lowest recall, i.e. at the first point of the curve (the
   smallest distance).
+
+Undefined metrics
+-----------------
+With nothing to evaluate (zero queries: an exclusion window at least as long
+as the sequence, a one-frame sequence) or nothing to find (zero positives),
+precision or recall is 0/0, so AP, max F1, R@100P and EP are *undefined*, not
+0. :func:`summarize` returns NaN for them (``null`` in JSON, an empty CSV
+cell, ``n/a`` in tables) and warns once why. With positives but no accepted
+prediction at all (every distance NaN), recall is 0 everywhere: AP, F1 and
+R@100P are 0 and EP is undefined (no precision at the lowest recall).
 """
 
 from __future__ import annotations
@@ -36,6 +46,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from lidar_iris_eval.errors import warn
 
 AP_DEFINITION = "sum_k (R_k - R_{k-1}) * P_k over thresholds, R_0 = 0 (step curve)"
 THRESHOLD_RULE = "a prediction is accepted when distance <= tau"
@@ -168,8 +180,37 @@ def extended_precision(curve: PRCurve) -> float:
     return float((curve.precision[0] + recall_at_full_precision(curve)) / 2)
 
 
-def summarize(curve: PRCurve) -> dict[str, float]:
-    """AP, max F1 with its threshold, R@100P, EP and P at the lowest recall."""
+UNDEFINED_KEYS = ("ap", "f1_max", "f1_threshold", "r100p", "ep", "p_at_lowest_recall")
+
+
+def summarize(curve: PRCurve, n_positives: int | None = None, n_queries: int | None = None,
+              source: str | None = None, no_queries: str | None = None) -> dict[str, float]:
+    """AP, max F1 with its threshold, R@100P, EP and P at the lowest recall.
+
+    Parameters
+    ----------
+    curve : the exact PR curve.
+    n_positives : how many things there were to find (revisit queries,
+        positive pairs); 0 makes every summary number undefined (NaN).
+    n_queries : how many predictions could be made (queries, pairs); 0 makes
+        every summary number undefined.
+    source : names the evaluation in the warning given when the numbers are
+        undefined (e.g. ``"protocol 1 (E=300, 220 frames)"``); no warning if None.
+    no_queries : why there can be no query, for that warning.
+    """
+    why = None
+    if n_queries == 0:
+        why = no_queries or "no queries"
+    elif n_positives == 0 or (len(curve) and np.isnan(curve.recall).any()):
+        why = "no positives (no pair of frames closer than the ground-truth radius)"
+    if why is not None:
+        if source is not None:
+            warn(source, f"{why}; AP, max F1, R@100P and EP are undefined "
+                         "(null in JSON, empty in CSV, n/a in tables)")
+        return dict.fromkeys(UNDEFINED_KEYS, float("nan"))
+    if len(curve) == 0:  # nothing was ever accepted (positives exist, or were not given)
+        return {"ap": 0.0, "f1_max": 0.0, "f1_threshold": float("nan"), "r100p": 0.0,
+                "ep": float("nan"), "p_at_lowest_recall": float("nan")}
     f1, threshold = max_f1(curve)
     return {
         "ap": average_precision(curve),

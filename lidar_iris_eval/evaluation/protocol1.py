@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.descriptors.base import Descriptor, yaw_to_pose
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.ground_truth import (
     GroundTruth,
@@ -30,12 +30,14 @@ from lidar_iris_eval.evaluation.ground_truth import (
     pair_distances,
 )
 from lidar_iris_eval.evaluation.metrics import PRCurve, pr_curve, summarize
-from lidar_iris_eval.matching.blocks import (
-    DEFAULT_PAIR_BUDGET,
-    BestMatches,
-    best_matches,
-    retrieval_matches,
+from lidar_iris_eval.evaluation.poses import (
+    pose_errors,
+    relative_ground_truth,
+    summarize_pose_errors,
+    t_columns,
 )
+from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET, BestMatches, best_matches
+from lidar_iris_eval.matching.retrieval import two_stage_matches
 
 RECALL_DENOMINATORS = ("revisits", "accepted")
 #: heading difference above which a revisit counts as reverse-direction
@@ -47,8 +49,13 @@ class Protocol1Result:
     """Per-query table, exact PR curve and summary metrics of protocol 1.
 
     ``metrics`` holds ``ap, f1_max, f1_threshold, r100p, ep, n_queries,
-    n_skipped, n_revisits, n_positives, n_true_top1`` and, when headings were
-    given, the same-/reverse-direction breakdown.
+    n_skipped, n_revisits, n_positives, n_true_top1``, the pose errors
+    ``rre_deg_median/p90`` and ``rte_m_median/p90`` of the true matches
+    (None when undefined, see ``evaluation/poses.py``) and, when headings
+    were given, the same-/reverse-direction breakdown.
+
+    ``pose`` ``(Q, 4, 4)`` is each match's estimated pose (candidate LiDAR
+    frame -> query's; NaN where unknown); ``rre_deg``/``rte_m`` its errors.
     """
 
     matches: BestMatches
@@ -60,10 +67,14 @@ class Protocol1Result:
     metrics: dict
     recall_denominator: str
     gt: GroundTruth
+    pose: np.ndarray | None = None
+    rre_deg: np.ndarray | None = None
+    rte_m: np.ndarray | None = None
 
     def table(self) -> dict[str, np.ndarray]:
         """Columns of ``matches.csv``: query, match, distance, yaw_deg, match_dist_m,
-        is_revisit, is_true (plus is_reverse when known)."""
+        is_revisit, is_true (plus is_reverse when known), inliers (two-stage),
+        rre_deg, rte_m and the 3x4 pose ``T00..T23``."""
         cols = {
             "query": self.matches.query,
             "match": self.matches.match,
@@ -75,13 +86,19 @@ class Protocol1Result:
         }
         if self.is_reverse is not None:
             cols["is_reverse"] = self.is_reverse
+        if self.matches.inliers is not None:
+            cols["inliers"] = self.matches.inliers
+        if self.pose is not None:
+            cols["rre_deg"] = self.rre_deg
+            cols["rte_m"] = self.rte_m
+            cols.update(t_columns(self.pose))
         return cols
 
 
 def check_recall_denominator(name: str) -> None:
     if name not in RECALL_DENOMINATORS:
         raise LirisError(
-            f"--recall-denominator {name}", f"choose from {', '.join(RECALL_DENOMINATORS)}"
+            f"recall_denominator {name}", f"choose from {', '.join(RECALL_DENOMINATORS)}"
         )
 
 
@@ -91,6 +108,7 @@ def score_protocol1(
     gt: GroundTruth,
     recall_denominator: str = "revisits",
     forward: np.ndarray | None = None,
+    lidar_poses: np.ndarray | None = None,
 ) -> Protocol1Result:
     """Score best matches against ground truth.
 
@@ -102,6 +120,8 @@ def score_protocol1(
     recall_denominator : ``revisits`` or ``accepted``.
     forward : optional ``(N, 3)`` unit forward (driving) directions, to split
         revisits into same- and reverse-direction ones.
+    lidar_poses : optional ``(N, 4, 4)`` LiDAR-frame poses, for the relative
+        pose errors of the matches (``evaluation/poses.py``).
     """
     check_recall_denominator(recall_denominator)
     query, match = matches.query, matches.match
@@ -127,8 +147,24 @@ def score_protocol1(
         is_reverse = reverse_all[query]
         metrics.update(_direction_breakdown(matches, is_true, is_revisit, is_reverse,
                                             metrics["f1_threshold"]))
+    pose = rre = rte = None
+    if lidar_poses is not None:
+        pose = estimated_poses(matches)
+        gt_pose = relative_ground_truth(lidar_poses, query, match)
+        rre, rte = pose_errors(pose, gt_pose)
+        metrics.update(summarize_pose_errors(rre, rte, is_true))
     return Protocol1Result(matches, dist_m, is_revisit, is_true, is_reverse, curve, metrics,
-                           recall_denominator, gt)
+                           recall_denominator, gt, pose, rre, rte)
+
+
+def estimated_poses(matches: BestMatches) -> np.ndarray:
+    """``(Q, 4, 4)`` poses of the matches: the method's own, else yaw-only from ``yaw_deg``."""
+    if matches.pose is not None:
+        pose = np.array(matches.pose, dtype=np.float64)
+    else:
+        pose = yaw_to_pose(matches.yaw_deg)
+    pose[matches.match < 0] = np.nan
+    return pose
 
 
 def reverse_revisits(positions: np.ndarray, gt: GroundTruth, forward: np.ndarray) -> np.ndarray:
@@ -196,18 +232,23 @@ def protocol1(
     forward: np.ndarray | None = None,
     pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
+    lidar_poses: np.ndarray | None = None,
 ) -> Protocol1Result:
     """Run protocol 1 end to end on stacked descriptors and positions.
 
-    ``descriptors`` is the stacked array or a :class:`~lidar_iris_eval.extract.DescriptorDB`.
-    ``candidates=K`` uses the descriptor's own retrieval (``candidates``
-    method) instead of the exhaustive search.
+    ``descriptors`` is the stacked array (or ragged features) or a
+    :class:`~lidar_iris_eval.extract.DescriptorDB`. ``candidates=K`` uses
+    the descriptor's retrieval stage and verification
+    (:mod:`~lidar_iris_eval.matching.retrieval`) instead of the exhaustive
+    search; two-stage methods always do, with ``K`` defaulting to
+    ``descriptor.default_candidates()``.
     """
     check_recall_denominator(recall_denominator)
     descriptors = stacked_descriptors(descriptors, positions)
     gt = compute_ground_truth(positions, radius, exclude, distance, frame)
-    if candidates is not None:
-        matches = retrieval_matches(descriptor, descriptors, exclude, candidates, progress)
+    if candidates is not None or descriptor.two_stage:
+        k = candidates if candidates is not None else descriptor.default_candidates()
+        matches = two_stage_matches(descriptor, descriptors, exclude, k, progress)
     else:
         matches = best_matches(descriptor, descriptors, exclude, pair_budget, progress)
-    return score_protocol1(matches, positions, gt, recall_denominator, forward)
+    return score_protocol1(matches, positions, gt, recall_denominator, forward, lidar_poses)

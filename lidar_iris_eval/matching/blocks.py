@@ -48,7 +48,11 @@ class BestMatches:
     seconds : wall time spent computing distances.
     n_evaluations : number of descriptor distances evaluated.
     source : how they were found: ``"exhaustive"``, ``"affinity"`` (taken from
-        a protocol 2 pass) or ``"candidates:K"`` (the descriptor's retrieval).
+        a protocol 2 pass), ``"candidates:K"`` (a global descriptor's retrieval
+        stage) or ``"two-stage:K"`` (retrieval + verification).
+    pose : ``(Q, 4, 4)`` estimated relative pose of each match (candidate's
+        LiDAR frame -> query's), NaN where unknown; None when not estimated.
+    inliers : ``(Q,)`` inlier counts of the verification, or None.
     """
 
     query: np.ndarray
@@ -58,6 +62,8 @@ class BestMatches:
     seconds: float
     n_evaluations: int
     source: str
+    pose: np.ndarray | None = None
+    inliers: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -229,43 +235,7 @@ def retrieval_matches(
     k: int,
     progress: Callable[[int], object] | None = None,
 ) -> BestMatches:
-    """Protocol 1 through the descriptor's own retrieval (``candidates``).
+    """Protocol 1 through the descriptor's retrieval stage (see :mod:`.retrieval`)."""
+    from lidar_iris_eval.matching.retrieval import two_stage_matches
 
-    For each query the descriptor proposes ``k`` candidates among
-    ``j <= i - exclude``; the best of those by full distance is the match.
-    One query at a time, because each query has its own database.
-    """
-    _check_exclude(exclude)
-    finder = getattr(descriptor, "candidates", None)
-    if finder is None:
-        raise LirisError(
-            f"--candidates {k}",
-            f"{descriptor.name} has no retrieval stage; run without --candidates",
-        )
-    if k < 1:
-        raise LirisError(f"--candidates {k}", "must be at least 1")
-    n = len(descriptors)
-    queries = np.arange(min(exclude, n), n)
-    match = np.full(len(queries), -1, dtype=np.int64)
-    dist = np.full(len(queries), np.inf)
-    yaw = np.full(len(queries), np.nan)
-    evaluations = 0
-    start = time.perf_counter()
-    for q, i in enumerate(queries):
-        database = descriptors[: i - exclude + 1]
-        cand = np.asarray(finder(descriptors[i : i + 1], database, k))[0]
-        cand = np.unique(cand[(cand >= 0) & (cand < len(database))])
-        if len(cand) == 0:
-            if progress is not None:
-                progress(1)
-            continue
-        d, y = descriptor.distances(descriptors[i], database[cand])
-        d = np.where(np.isnan(d), np.inf, np.asarray(d, dtype=np.float64))
-        evaluations += len(cand)
-        best = int(np.argmin(d))
-        if np.isfinite(d[best]):
-            match[q], dist[q], yaw[q] = cand[best], d[best], y[best]
-        if progress is not None:
-            progress(1)
-    seconds = time.perf_counter() - start
-    return BestMatches(queries, match, dist, yaw, seconds, evaluations, f"candidates:{k}")
+    return two_stage_matches(descriptor, descriptors, exclude, k, progress)

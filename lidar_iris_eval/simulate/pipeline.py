@@ -126,13 +126,20 @@ class SimReport:
     points: int
     revisit_queries: int
     seconds: float
+    revisit_queries_camera: int | None = None  # the same count on camera-frame poses
 
     def summary(self) -> str:
         route = "trajectory" if self.config.trajectory is not None else self.config.route
+        # The two frames' positions differ by the LiDAR-camera lever arm, so a pair
+        # near 4 m can count in one and not the other; say which count is which.
+        camera = ("" if self.revisit_queries_camera is None else
+                  f"; {self.revisit_queries_camera} with camera-frame poses, the default of "
+                  "liris gt/eval")
         return (
             f"wrote {self.frames} scans ({self.config.sensor}, {route} route, "
             f"{self.points / max(self.frames, 1):.0f} points/scan, {self.revisit_queries} "
-            f"revisit queries at E=30, 4 m) to {self.out_dir} in {self.seconds:.1f} s"
+            f"revisit queries at E=30, 4 m with LiDAR-frame poses{camera}) to {self.out_dir} "
+            f"in {self.seconds:.1f} s"
         )
 
 
@@ -158,6 +165,8 @@ def run_simulation(
         total_points += len(scan.points)
     remove_stale(out_dir, n)
     revisits = revisit_queries(scen.poses[:, :3, 3])
+    camera_poses = scen.tr @ scen.poses @ np.linalg.inv(scen.tr)  # as written to poses.txt
+    revisits_camera = revisit_queries(camera_poses[:, :3, 3])
     manifest = {
         "generator": "liris simulate",
         "version": __version__,
@@ -168,11 +177,14 @@ def run_simulation(
         "frames": n,
         "points": total_points,
         "revisit_queries_E30_4m": int(len(revisits)),
+        "revisit_queries_E30_4m_frame": "lidar",
+        "revisit_queries_E30_4m_camera_frame": int(len(revisits_camera)),
         "classes": {str(k): v for k, v in labels.CLASS_NAMES.items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
     write_metadata(out_dir, scen.poses, scen.tr, manifest)
-    return SimReport(out_dir, cfg, n, total_points, len(revisits), time.perf_counter() - start)
+    return SimReport(out_dir, cfg, n, total_points, len(revisits), time.perf_counter() - start,
+                     int(len(revisits_camera)))
 
 
 def simulate_sequence(

@@ -432,6 +432,21 @@ class ScanContext(Descriptor):
         _, idx = tree.query(q["ring_key"], k=k)
         return np.asarray(idx, dtype=np.int64).reshape(len(q), k)
 
+    def retrieve(
+        self, db: np.ndarray, query: int, n_allowed: int, k: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Two-stage interface: the ``k`` frames of ``[0, n_allowed)`` nearest in ring key.
+
+        The same k-d tree search as :meth:`candidates` (a tree over the allowed
+        frames, as the C++ rebuilds it), returning ring-key distances too.
+        """
+        keys = self._records(db, "database")["ring_key"]
+        k = min(int(k), int(n_allowed))
+        if k < 1:
+            return np.empty(0, dtype=np.int64), np.empty(0)
+        dist, idx = cKDTree(keys[:n_allowed]).query(keys[query][None], k=k)
+        return np.asarray(idx, dtype=np.int64).reshape(k), np.asarray(dist, float).reshape(k)
+
 
 class ScanContextMatcher:
     """A database prepared for matching; made by :meth:`ScanContext.matcher`."""

@@ -1,0 +1,369 @@
+"""The evaluation as a library call: what ``liris eval`` runs, importable.
+
+::
+
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate, write_run
+
+    run = evaluate("dataset/sequences/00", ["lidar-iris", "scan-context:reference"],
+                   protocols=(1, 2), settings=Settings(exclude="reference"),
+                   cache=".liris-cache")
+    for row in run.rows:                       # the rows of metrics.json
+        print(row["protocol"], row["descriptor"], row["f1_max"], row.get("rre_deg_median"))
+    write_run(run, "results/kitti00")         # the run folder (docs/results-format.md)
+
+:func:`evaluate` extracts (or loads) descriptors, runs the requested
+protocols under frozen :class:`Settings`, and returns an :class:`Evaluation`
+holding every result object, the metric rows, the header (conventions) and
+the config. It writes nothing; :func:`write_run` lays a run folder out and
+:func:`export_loops` writes accepted loops as pose-graph edges.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from lidar_iris_eval import __version__
+from lidar_iris_eval.config import params_dict
+from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.evaluation import metrics as m
+from lidar_iris_eval.evaluation import poses as pose_tools
+from lidar_iris_eval.evaluation.protocol1 import REVERSE_DEGREES, Protocol1Result, protocol1
+from lidar_iris_eval.evaluation.protocol2 import Protocol2Result, protocol2, protocols_1_and_2
+from lidar_iris_eval.evaluation.report import (
+    SUMMARY_KEYS,
+    RunWriter,
+    write_metrics,
+    write_protocol1,
+    write_protocol2,
+    write_timing,
+)
+from lidar_iris_eval.evaluation.settings import EXCLUDE_PRESETS, Settings
+from lidar_iris_eval.extract import DescriptorDB, extract
+
+__all__ = [
+    "EXCLUDE_PRESETS",
+    "DescriptorResult",
+    "Evaluation",
+    "Settings",
+    "evaluate",
+    "export_loops",
+    "write_run",
+]
+
+
+@dataclass(frozen=True)
+class DescriptorResult:
+    """Everything computed for one descriptor."""
+
+    descriptor: Descriptor
+    db: DescriptorDB
+    protocol1: Protocol1Result | None
+    protocol2: Protocol2Result | None
+    rows: list[dict]
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Results of :func:`evaluate` (``rows`` are the ``results`` of metrics.json)."""
+
+    sequence: Any
+    settings: Settings
+    protocols: tuple[int, ...]
+    pose_frame: str
+    results: list[DescriptorResult]
+    wall_s: float
+    created: str = field(default_factory=lambda: datetime.now().isoformat(timespec="seconds"))
+
+    @property
+    def rows(self) -> list[dict]:
+        return [row for r in self.results for row in r.rows]
+
+    def config(self, **extra) -> dict:
+        """Everything needed to reproduce the run (``config.yaml``); ``extra`` is merged
+        in (e.g. the CLI's sensor and reader options)."""
+        seq = self.sequence
+        s = self.settings
+        config = {
+            "version": __version__,
+            "sequence": {"path": str(Path(seq.path).resolve()), "name": seq.name,
+                         "n_frames": len(seq), "fingerprint": seq.fingerprint()},
+            "descriptors": [{"name": r.descriptor.name, "preset": r.descriptor.preset,
+                             "params": params_dict(r.descriptor.params)} for r in self.results],
+            "protocols": list(self.protocols),
+            "radius": float(s.radius),
+            "exclude": {"value": int(s.exclude), "preset": s.exclude_name},
+            "recall_denominator": s.recall_denominator,
+            "distance": s.distance,
+            "pose_frame": self.pose_frame,
+            "candidates": s.candidates,
+            "block_pairs": int(s.pair_budget),
+        }
+        for key, value in extra.items():
+            if key == "reader_options":
+                config["sequence"]["reader_options"] = {k: str(v) for k, v in value.items()}
+            else:
+                config[key] = value
+        return config
+
+    def header(self, config: dict | None = None) -> dict:
+        """The metrics.json header: version, host, sequence and every convention."""
+        config = self.config() if config is None else config
+        return {
+            "version": __version__,
+            "created": self.created,
+            "wall_s": self.wall_s,
+            "host": {"python": sys.version.split()[0], "platform": platform.platform()},
+            "sequence": config["sequence"],
+            "conventions": {
+                "radius": config["radius"],
+                "exclude": config["exclude"]["value"],
+                "exclude_preset": config["exclude"]["preset"],
+                "distance": config["distance"],
+                "pose_frame": config["pose_frame"],
+                "recall_denominator": config["recall_denominator"],
+                "candidates": config["candidates"],
+                "positive": f"ground-truth distance < {config['radius']:g} m",
+                "threshold_rule": m.THRESHOLD_RULE,
+                "ap": m.AP_DEFINITION,
+                "ep": m.EP_DEFINITION,
+                "protocol2_counts": "ordered pairs (i, j), i != j",
+                "reverse_revisit": f"nearest earlier positive's heading differs by > "
+                                   f"{REVERSE_DEGREES:g} deg (LiDAR x axis)",
+                "relative_pose": "T maps points of the matched scan's LiDAR frame into the "
+                                 "query's LiDAR frame (matches.csv T00..T23, row-major 3x4)",
+                "pose_error": pose_tools.POSE_ERROR_RULE,
+                "extract_time": "mean per-thread CPU time of descriptor.compute per scan "
+                                "(compilation excluded), from the run that filled the cache",
+                "match_time": "wall time of the matching loop after an untimed warm-up call "
+                              "of its kernels (compilation excluded)",
+            },
+        }
+
+
+def _descriptor_list(descriptors) -> list[Descriptor]:
+    from lidar_iris_eval.descriptors import get_descriptor
+
+    if isinstance(descriptors, (str, Descriptor)):
+        descriptors = [descriptors]
+    out = []
+    for d in descriptors:
+        if isinstance(d, str):
+            name, _, preset = d.partition(":")
+            d = get_descriptor(name, preset or None)
+        out.append(d)
+    names = [d.name for d in out]
+    if not out or len(set(names)) != len(names):
+        raise LirisError(option("descriptors", names), "give each descriptor once")
+    return out
+
+
+def check_request(descriptors: Sequence[Descriptor], protocols: Iterable[int],
+                  settings: Settings) -> tuple[int, ...]:
+    """Validate protocols and the retrieval setting before any work; sorted protocols."""
+    protocols = tuple(sorted({int(p) for p in protocols}))
+    if not protocols or set(protocols) - {1, 2}:
+        raise LirisError(option("protocols", protocols), "protocols are 1 and/or 2")
+    if settings.candidates is not None:
+        for d in descriptors:
+            if not d.has_retrieval():
+                raise LirisError(option("candidates", settings.candidates),
+                                 f"{d.name} has no retrieval stage")
+        if not any(d.two_stage for d in descriptors) and 1 not in protocols:
+            raise LirisError(option("candidates", settings.candidates),
+                             "only applies to protocol 1 (and two-stage methods)")
+    return protocols
+
+
+def evaluate(
+    sequence,
+    descriptors: Descriptor | str | Iterable[Descriptor | str],
+    protocols: Iterable[int] = (1, 2),
+    settings: Settings | None = None,
+    *,
+    cache: Any = None,
+    workers: int = 1,
+    progress: bool = False,
+    dbs: Sequence[DescriptorDB] | None = None,
+) -> Evaluation:
+    """Extract and evaluate ``descriptors`` on ``sequence`` under ``settings``.
+
+    Parameters
+    ----------
+    sequence : a :class:`~lidar_iris_eval.io.Sequence` or a path for
+        :func:`~lidar_iris_eval.io.open_sequence`.
+    descriptors : descriptor objects or names (``"name"`` or ``"name:preset"``).
+    protocols : any of 1 and 2.
+    settings : the conventions (default :class:`Settings()`).
+    cache : a :class:`~lidar_iris_eval.cache.DescriptorCache`, a folder, or None.
+    workers : extraction processes.
+    progress : tqdm bars on stderr.
+    dbs : already extracted descriptors (one per descriptor), to skip extraction.
+    """
+    settings = Settings() if settings is None else settings
+    descriptors = _descriptor_list(descriptors)
+    protocols = check_request(descriptors, protocols, settings)
+    if isinstance(sequence, (str, os.PathLike)):
+        from lidar_iris_eval.io import open_sequence
+
+        sequence = open_sequence(sequence)
+    for d in descriptors:
+        d.check_inputs(sequence)
+    pose_frame = sequence.resolve_pose_frame(settings.pose_frame)
+    positions = sequence.positions(pose_frame)
+    forward = sequence.poses[:, :3, 0]  # LiDAR x axis: the driving direction
+    started = time.perf_counter()
+    if dbs is None:
+        dbs = [extract(sequence, d, cache=cache, workers=workers, progress=progress)
+               for d in descriptors]
+    results = []
+    for desc, db in zip(descriptors, dbs, strict=True):
+        results.append(_evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
+                                     settings, pose_frame, progress))
+    return Evaluation(sequence, settings, protocols, pose_frame, results,
+                      time.perf_counter() - started)
+
+
+def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings, frame,
+                  progress) -> DescriptorResult:
+    """Run the requested protocols for one descriptor and build its metric rows."""
+    s = settings
+    common = dict(radius=s.radius, distance=s.distance, frame=frame, pair_budget=s.pair_budget)
+    p1 = p2 = None
+    n = len(db)
+    rows_to_match = n if 2 in protocols else max(0, n - s.exclude)
+    with tqdm(total=rows_to_match, desc=f"{desc.name} matching", unit="query",
+              file=sys.stderr, disable=not progress, leave=False) as bar:
+        both = protocols == (1, 2) and (s.candidates is None or desc.two_stage)
+        if both:
+            p1, p2 = protocols_1_and_2(
+                desc, db.descriptors, positions, exclude=s.exclude,
+                recall_denominator=s.recall_denominator, forward=forward,
+                progress=bar.update, lidar_poses=lidar_poses, candidates=s.candidates,
+                **common)
+        else:
+            if 1 in protocols:
+                p1 = protocol1(desc, db.descriptors, positions, exclude=s.exclude,
+                               recall_denominator=s.recall_denominator,
+                               candidates=s.candidates, forward=forward,
+                               progress=bar.update, lidar_poses=lidar_poses, **common)
+            if 2 in protocols:
+                # the bar counted protocol 1 already; don't overrun it
+                p2 = protocol2(desc, db.descriptors, positions,
+                               progress=None if p1 is not None else bar.update,
+                               candidates=s.candidates if desc.two_stage else None, **common)
+    return DescriptorResult(desc, db, p1, p2, _rows(desc, db, p1, p2, s))
+
+
+def _pose_kind(p1: Protocol1Result) -> str:
+    """``full`` (6-DoF), ``yaw`` (rotation only) or ``none`` — what the method estimated."""
+    if p1.pose is None:
+        return "none"
+    has = p1.matches.match >= 0
+    rot = np.isfinite(p1.pose[has, :3, :3]).all(axis=(1, 2))
+    trans = np.isfinite(p1.pose[has, :3, 3]).all(axis=1)
+    if trans.any():
+        return "full"
+    return "yaw" if rot.any() else "none"
+
+
+def _rows(desc, db, p1, p2, settings) -> list[dict]:
+    base = {"descriptor": desc.name, "preset": desc.preset}
+    rows = []
+    if p1 is not None:
+        matches = p1.matches
+        n_queries = max(1, p1.metrics["n_queries"])
+        rows.append({
+            "protocol": 1, **base, **{k: p1.metrics[k] for k in SUMMARY_KEYS},
+            "n_queries": p1.metrics["n_queries"],
+            "n_positives": p1.metrics["n_positives"],
+            "n_revisits": p1.metrics["n_revisits"],
+            "extract_ms_per_scan": db.extract_ms_per_scan,
+            "match_ms_per_query": (matches.seconds / n_queries * 1e3 if p1.metrics["n_queries"]
+                                   else float("nan")),  # no query: no time per query
+            "recall_denominator": settings.recall_denominator,
+            "match_source": matches.source,
+            "pose_estimate": _pose_kind(p1),
+            **{k: v for k, v in p1.metrics.items()
+               if k not in SUMMARY_KEYS and k not in ("n_queries", "n_positives", "n_revisits")},
+        })
+    if p2 is not None:
+        aff = p2.affinity
+        rows.append({
+            "protocol": 2, **base, **{k: p2.metrics[k] for k in SUMMARY_KEYS},
+            "n_pairs": p2.metrics["n_pairs"],
+            "n_positives": p2.metrics["n_positives"],
+            "n_negatives": p2.metrics["n_negatives"],
+            "extract_ms_per_scan": db.extract_ms_per_scan,
+            "match_us_per_pair": aff.seconds / max(1, aff.n_evaluations) * 1e6,
+            "n_distance_evaluations": aff.n_evaluations,
+            "symmetric": aff.symmetric,
+            "p_at_lowest_recall": p2.metrics["p_at_lowest_recall"],
+            "protocol2_rule": p2.metrics["protocol2_rule"],
+        })
+    return rows
+
+
+def write_run(evaluation: Evaluation, out: str | os.PathLike, overwrite: bool = False,
+              **config_extra) -> Path:
+    """Write the run folder (docs/results-format.md) atomically; returns its path."""
+    out = Path(out)
+    config = evaluation.config(**config_extra)
+    seq = evaluation.sequence
+    poses = seq.camera_poses if evaluation.pose_frame == "camera" else seq.poses
+    with RunWriter(out, overwrite) as run:
+        for r in evaluation.results:
+            if r.protocol1 is not None:
+                write_protocol1(run, r.descriptor.name, r.protocol1)
+            if r.protocol2 is not None:
+                write_protocol2(run, r.descriptor.name, r.protocol2)
+            write_timing(run, r.descriptor.name, r.db.extract_s, r.db.read_s)
+        run.write_yaml("config.yaml", config)
+        write_metrics(run, evaluation.header(config), evaluation.rows)
+        run.write_npy("poses.npy", np.asarray(poses, dtype=np.float64))
+        run.write_npy("positions.npy", seq.positions(evaluation.pose_frame).astype(np.float64))
+    return out
+
+
+def loop_export_paths(path: str | os.PathLike, names: Sequence[str]) -> list[Path]:
+    """One file per descriptor: ``path`` itself for one, ``<stem>-<name><suffix>`` for several."""
+    path = Path(path)
+    if len(names) == 1:
+        return [path]
+    return [path.with_name(f"{path.stem}-{name}{path.suffix}") for name in names]
+
+
+def export_loops(evaluation: Evaluation, path: str | os.PathLike) -> dict[str, tuple[Path, int]]:
+    """Write each descriptor's accepted protocol 1 loops at its F1max threshold.
+
+    Returns ``{descriptor: (file, loops written)}``; see
+    :func:`~lidar_iris_eval.evaluation.poses.export_loops` for the formats.
+    """
+    with_p1 = [r for r in evaluation.results if r.protocol1 is not None]
+    if not with_p1:
+        raise LirisError(option("export_loops", path), "loop export needs protocol 1")
+    out = {}
+    for r, target in zip(with_p1, loop_export_paths(path, [r.descriptor.name for r in with_p1]),
+                         strict=True):
+        p1 = r.protocol1
+        tau = p1.metrics["f1_threshold"]
+        matches = p1.matches
+        accepted = (matches.match >= 0) & (matches.distance <= tau) if np.isfinite(tau) else \
+            np.zeros(len(matches.match), bool)
+        pose = p1.pose if p1.pose is not None else np.full((len(matches.match), 4, 4), np.nan)
+        written = pose_tools.export_loops(
+            target, matches.query[accepted], matches.match[accepted], pose[accepted],
+            getattr(evaluation.sequence, "frame_ids", None))
+        out[r.descriptor.name] = (target, written)
+    return out
