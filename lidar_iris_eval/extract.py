@@ -18,7 +18,8 @@ CPU time of the calling thread (:func:`time.thread_time`) spent in
 cores, a shared machine) do not inflate it, as wall time would (2,331 ms
 against 14.6 ms per scan measured). Each process first runs the descriptor
 once on its first scan, untimed, so numba compilation (or loading numba's
-cache) is not reported as descriptor cost. Reading the scan (``read_s``) is
+cache) is not reported as descriptor cost (a descriptor class with nothing to
+compile may set ``warm_up = False`` to skip that extra call). Reading the scan (``read_s``) is
 wall time: it is mostly waiting for the disk.
 
 Each scan goes through :meth:`Descriptor.describe`: point descriptors get the
@@ -337,7 +338,7 @@ _WARMED: set[tuple[type, str]] = set()
 def _warm_up(descriptor, scan, wants_scan: bool) -> None:
     """Run ``descriptor`` once on ``scan``, untimed, the first time in this process."""
     key = (type(descriptor), repr(getattr(descriptor, "params", None)))
-    if key in _WARMED:
+    if key in _WARMED or getattr(descriptor, "warm_up", True) is False:
         return
     if wants_scan:
         descriptor.describe(scan)

@@ -194,8 +194,8 @@ def test_bench_json_folder_fails_before_the_benchmark(tmp_path, capsys, monkeypa
 
 
 def test_messages_name_flags_not_python(seq_dir, tmp_path, capsys):
-    code, _, err = run_cli(eval_args(seq_dir, "--every", "2", "--topic", "/x"), capsys)
-    assert_one_line_error(code, err, "--every, --topic")
+    code, _, err = run_cli(eval_args(seq_dir, "--pose-topic", "/p", "--topic", "/x"), capsys)
+    assert_one_line_error(code, err, "--pose-topic, --topic")
     assert "[" not in err and "'" not in err
     folder = tmp_path / "plain"
     folder.mkdir()

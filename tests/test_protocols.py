@@ -38,6 +38,7 @@ class ToyHist(Descriptor):
     name = "toy"
     params_type = ToyParams
     symmetric = True
+    warm_up = False  # nothing to compile; keeps ``calls`` equal to the scans computed
 
     def __init__(self, params=None, preset="custom"):
         super().__init__(params, preset)
