@@ -6,15 +6,21 @@ Parsing, printing and writing only: the evaluation itself is
 
 from __future__ import annotations
 
-from datetime import datetime
 from pathlib import Path
 
 import click
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.extract_cmd import build_descriptors, descriptor_options, open_input
-from lidar_iris_eval.cli.options import ground_truth_options
-from lidar_iris_eval.cli.output import echo_json, echo_table
+from lidar_iris_eval.cli.options import current_convention, ground_truth_options
+from lidar_iris_eval.cli.output import echo_json
+from lidar_iris_eval.cli.workflow import (
+    config_extra,
+    externals_for,
+    extract_all,
+    table_format,
+    workflow_options,
+)
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.evaluation.evaluate import (
     Settings,
@@ -24,11 +30,9 @@ from lidar_iris_eval.evaluation.evaluate import (
     loop_export_paths,
     write_run,
 )
-from lidar_iris_eval.evaluation.report import SUMMARY_KEYS, check_run_dir, json_ready
+from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir, json_ready
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
-
-TABLE_COLUMNS = ("protocol", "descriptor", "preset", "ap", "f1_max", "r100p", "ep", "n",
-                 "positives", "extract_ms_per_scan", "match_time")
+from lidar_iris_eval.runs.table import render_table
 
 #: library keywords (Settings, evaluate) -> the flags that set them, for error messages
 register_flags({
@@ -40,6 +44,7 @@ register_flags({
 
 
 @click.command("eval")
+@workflow_options
 @click.argument("sequence", type=click.Path(path_type=Path))
 @click.option("--protocol", "protocols", type=click.Choice(["1", "2"]), multiple=True,
               required=True, help="1 (best match per query) or 2 (all pairs); may be repeated.")
@@ -68,12 +73,15 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     Descriptors are extracted first when the cache lacks them. Results go to a
     run folder (docs/results-format.md) that `liris plot` reads.
     """
+    conv = current_convention()  # --convention / --exclude 30s (issue 17)
+    exclude = exclude if conv.exclude_seconds is None else 1  # seconds: per-query limits
     settings = Settings(radius=radius, exclude=exclude, distance=distance, pose_frame=pose_frame,
                         recall_denominator=recall_denominator, candidates=candidates,
                         pair_budget=block_pairs)
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
-    descriptors = build_descriptors(descriptor_text, preset, sensor, params)
+    descriptors = build_descriptors(descriptor_text, preset, sensor, params) \
+        if descriptor_text else []
     check_request(descriptors, protocols, settings)
     if export_path is not None:
         if "1" not in protocols:
@@ -81,45 +89,36 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
         if export_path.suffix.lower() not in (".g2o", ".txt"):
             raise LirisError(f"--export-loops {export_path}", "use a .g2o or .txt file name")
     seq = open_input(sequence, reader_options)
+    descriptors += externals_for(seq)  # --external NAME=PATH
+    check_request(descriptors, protocols, settings)
     for d in descriptors:
         d.check_inputs(seq)
     if out is None:
-        out = Path("results") / f"{seq.name}-{datetime.now():%Y%m%d-%H%M%S}"
+        out = default_run_dir(seq.name)
     check_run_dir(out, overwrite)
 
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
     run = evaluate(seq, descriptors, protocols, settings, cache=cache, workers=workers,
-                   progress=not quiet)
-    write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options)
+                   progress=not quiet, convention=conv,
+                   dbs=extract_all(seq, descriptors, cache, workers, quiet))
+    extra = config_extra(conv)
+    write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options, **extra)
     exported = export_loops(run, export_path) if export_path is not None else {}
     if as_json:
         echo_json(json_ready({**run.header(run.config(sensor=sensor,
-                                                      reader_options=reader_options)),
+                                                      reader_options=reader_options, **extra)),
                               "results": run.rows}))
         return
-    echo_table([_table_row(r) for r in run.rows], TABLE_COLUMNS)
-    click.echo(
-        f"conventions: radius {settings.radius:g} m, exclude E={settings.exclude} "
-        f"({settings.exclude_name}), {settings.distance} distance, {run.pose_frame}-frame poses, "
-        f"protocol 1 recall denominator '{settings.recall_denominator}'; results in {out}"
-    )
+    click.echo(render_table(run.rows, table_format()))
+    click.echo(  # after a Markdown/LaTeX/CSV table, to stderr: the table stays pasteable
+        f"conventions: radius {settings.radius:g} m, exclude "
+        + (f"E={settings.exclude} ({settings.exclude_name})" if conv.exclude_seconds is None
+           else f"{conv.exclude_seconds:g} s by scan time")
+        + f", {settings.distance} distance, {run.pose_frame}-frame poses, "
+        f"protocol 1 recall denominator '{settings.recall_denominator}', convention "
+        f"{conv.name}; results in {out}", err=table_format() != "table")
     for name, (path, count) in exported.items():
         click.echo(f"{name}: {count} accepted loops written to {path}")
-
-
-def _table_row(row: dict) -> dict:
-    p1 = row["protocol"] == 1
-    match_time = (f"{row['match_ms_per_query']:.3f} ms/query" if p1
-                  else f"{row['match_us_per_pair']:.3f} us/pair")
-    return {
-        **{k: row[k] for k in ("protocol", "descriptor", "preset", *SUMMARY_KEYS[:2])},
-        "r100p": row["r100p"],
-        "ep": row["ep"],
-        "n": row["n_queries"] if p1 else row["n_pairs"],
-        "positives": row["n_positives"],
-        "extract_ms_per_scan": row["extract_ms_per_scan"],
-        "match_time": match_time,
-    }
 
 
 __all__ = ["command", "loop_export_paths"]

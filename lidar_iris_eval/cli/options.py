@@ -80,8 +80,8 @@ def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
             values[key] = kwargs[key]
     conv = with_overrides(base, **values)
     if name is None:  # no preset asked: "liris" when the options are its defaults
-        conv = with_overrides(conv, name="liris" if same_rules(conv, base) else "custom",
-                              source="command-line options")
+        conv = base if same_rules(conv, base) else with_overrides(
+            conv, name="custom", source="command-line options")
     kwargs["radius"] = conv.radius
     kwargs["distance"] = conv.distance
     kwargs["pose_frame"] = conv.pose_frame

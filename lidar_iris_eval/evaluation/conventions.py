@@ -237,3 +237,35 @@ def convention_counts(positions: np.ndarray, conv: Convention,
     if not conv.last_frame_query:
         out["last_frame_query"] = False
     return out
+
+
+def convention_header(recorded: dict | None) -> dict:
+    """``metrics.json`` convention keys for a convention recorded in ``config.yaml``.
+
+    ``recorded`` is the ``convention`` entry of the config (``preset`` plus
+    the :class:`Convention` fields); the keys say in words what differs from
+    the ordinary protocol 1.
+    """
+    if not recorded:
+        return {}
+    out = {"convention": recorded.get("preset"), "convention_source": recorded.get("source")}
+    if recorded.get("exclude_seconds") is not None:
+        seconds = recorded["exclude_seconds"]
+        out["exclude_seconds"] = seconds
+        out["exclude"] = None
+        out["exclude_preset"] = "seconds"
+        out["window_rule"] = (
+            f"query i searches scans with t_j <= t_i - {seconds:g} s"
+            if recorded.get("window_rule") == "liris" else
+            f"queries once {seconds:g} s have passed; database up to and including the first "
+            f"scan later than t_i - {seconds:g} s (LoGG3D-Net)")
+    if recorded.get("inclusive_radius"):
+        out["positive"] = (f"protocol 1: ground-truth distance <= {recorded.get('radius'):g} m; "
+                           f"protocol 2: < {recorded.get('radius'):g} m")
+    if recorded.get("not_revisit_radius") is not None:
+        out["not_revisit_band"] = (
+            f"accepted matches farther than {recorded.get('radius'):g} m and at most "
+            f"{recorded['not_revisit_radius']:g} m are neither true nor false positives")
+    if recorded.get("last_frame_query") is False:
+        out["query_range"] = "the last frame is never a query (Scan Context's evaluator)"
+    return out

@@ -39,6 +39,7 @@ from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.errors import LirisError, option
 from lidar_iris_eval.evaluation import metrics as m
 from lidar_iris_eval.evaluation import poses as pose_tools
+from lidar_iris_eval.evaluation.conventions import convention_header
 from lidar_iris_eval.evaluation.protocol1 import REVERSE_DEGREES, Protocol1Result, protocol1
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result, protocol2, protocols_1_and_2
 from lidar_iris_eval.evaluation.report import (
@@ -148,6 +149,7 @@ class Evaluation:
                                 "(compilation excluded), from the run that filled the cache",
                 "match_time": "wall time of the matching loop after an untimed warm-up call "
                               "of its kernels (compilation excluded)",
+                **convention_header(config.get("convention")),
             },
         }
 
@@ -196,6 +198,7 @@ def evaluate(
     workers: int = 1,
     progress: bool = False,
     dbs: Sequence[DescriptorDB] | None = None,
+    convention: Any = None,
 ) -> Evaluation:
     """Extract and evaluate ``descriptors`` on ``sequence`` under ``settings``.
 
@@ -210,6 +213,9 @@ def evaluate(
     workers : extraction processes.
     progress : tqdm bars on stderr.
     dbs : already extracted descriptors (one per descriptor), to skip extraction.
+    convention : a :class:`~lidar_iris_eval.evaluation.conventions.Convention` whose
+        protocol 1 rules (window in seconds, skipped queries, LoGG3D's band) replace
+        the frame window; its radius/distance must equal ``settings``'.
     """
     settings = Settings() if settings is None else settings
     descriptors = _descriptor_list(descriptors)
@@ -230,13 +236,14 @@ def evaluate(
     results = []
     for desc, db in zip(descriptors, dbs, strict=True):
         results.append(_evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
-                                     settings, pose_frame, progress))
+                                     settings, pose_frame, progress, convention,
+                                     getattr(sequence, "times", None)))
     return Evaluation(sequence, settings, protocols, pose_frame, results,
                       time.perf_counter() - started)
 
 
 def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings, frame,
-                  progress) -> DescriptorResult:
+                  progress, convention=None, times=None) -> DescriptorResult:
     """Run the requested protocols for one descriptor and build its metric rows."""
     s = settings
     common = dict(radius=s.radius, distance=s.distance, frame=frame, pair_budget=s.pair_budget)
@@ -245,7 +252,8 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
     rows_to_match = n if 2 in protocols else max(0, n - s.exclude)
     with tqdm(total=rows_to_match, desc=f"{desc.name} matching", unit="query",
               file=sys.stderr, disable=not progress, leave=False) as bar:
-        both = protocols == (1, 2) and (s.candidates is None or desc.two_stage)
+        peer = convention is not None and not convention.standard and 1 in protocols
+        both = protocols == (1, 2) and (s.candidates is None or desc.two_stage) and not peer
         if both:
             p1, p2 = protocols_1_and_2(
                 desc, db.descriptors, positions, exclude=s.exclude,
@@ -253,7 +261,15 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
                 progress=bar.update, lidar_poses=lidar_poses, candidates=s.candidates,
                 **common)
         else:
-            if 1 in protocols:
+            if peer:  # a peer's protocol 1 rules (evaluation/conventions.py)
+                from lidar_iris_eval.evaluation.convention_protocol1 import protocol1_convention
+                from lidar_iris_eval.evaluation.conventions import with_overrides
+
+                p1 = protocol1_convention(desc, db.descriptors, positions,
+                                          with_overrides(convention, pose_frame=frame),
+                                          times=times, forward=forward,
+                                          pair_budget=s.pair_budget, progress=bar.update)
+            elif 1 in protocols:
                 p1 = protocol1(desc, db.descriptors, positions, exclude=s.exclude,
                                recall_denominator=s.recall_denominator,
                                candidates=s.candidates, forward=forward,
@@ -311,6 +327,7 @@ def _rows(desc, db, p1, p2, settings) -> list[dict]:
             "symmetric": aff.symmetric,
             "p_at_lowest_recall": p2.metrics["p_at_lowest_recall"],
             "protocol2_rule": p2.metrics["protocol2_rule"],
+            **{k: p2.metrics[k] for k in ("affinity_stored", "pr_counting") if k in p2.metrics},
         })
     return rows
 

@@ -1,0 +1,137 @@
+"""The researcher's-workflow options of ``liris eval`` (issue 17), kept out of eval_cmd.
+
+:func:`workflow_options` adds
+
+* ``--config RUN/config.yaml``: rerun a recorded run; its values become the
+  command's defaults, so any option given on the command line wins;
+* ``--external NAME=PATH`` (repeatable) and ``--external-metric``: descriptors
+  computed elsewhere, evaluated like the built-in ones;
+* ``--format``: print the summary table as an aligned table, Markdown,
+  LaTeX or CSV (the same function as ``liris show``).
+
+The command body reads them back with :func:`externals_for`,
+:func:`table_format` and :func:`config_extra`.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import click
+from click.core import ParameterSource
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.runs.table import FORMATS
+
+_META = "liris.workflow"
+
+
+def _load_config(ctx: click.Context, param: click.Parameter, value):
+    """Eager ``--config``: the recorded run's options become this call's defaults."""
+    if value is None or ctx.resilient_parsing:
+        return value
+    from lidar_iris_eval.runs.replay import config_defaults, read_config
+
+    defaults = config_defaults(read_config(value))
+    ctx.default_map = {**(ctx.default_map or {}), **defaults}
+    ctx.meta.setdefault(_META, {})["config"] = str(value)
+    return value
+
+
+def workflow_options(func):
+    """``--config``, ``--external``, ``--external-metric`` and ``--format`` (see module doc).
+
+    Apply it above ``descriptor_options``: ``--descriptor`` then becomes
+    optional, since ``--external`` alone is a complete request.
+    """
+    for param in getattr(func, "__click_params__", []):
+        if param.name in ("descriptor_text", "protocols", "sequence"):
+            param.required = False  # may come from --config or --external; checked below
+
+    @click.option("--config", "config_path", type=click.Path(dir_okay=True), default=None,
+                  is_eager=True, expose_value=False, callback=_load_config,
+                  help="Rerun a recorded run: RUN/config.yaml (or RUN). Options given here win.")
+    @click.option("--external", "externals", multiple=True, metavar="NAME=PATH",
+                  help="Evaluate descriptors computed elsewhere: an .npy (N, D) of vectors or "
+                       "an (N, N) distance matrix, one row per scan; repeatable.")
+    @click.option("--external-metric", type=click.Choice(["l2", "cosine", "l1"]), default=None,
+                  help="Distance between external vectors [default: l2; an (N, N) file is read "
+                       "as a distance matrix unless a metric is given].")
+    @click.option("--format", "fmt", type=click.Choice(FORMATS), default="table",
+                  show_default=True, help="Summary table as text, Markdown, LaTeX or CSV.")
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        ctx = click.get_current_context()
+        meta = ctx.meta.setdefault(_META, {})
+        meta["externals"] = list(kwargs.pop("externals") or ())
+        meta["external_metric"] = kwargs.pop("external_metric")
+        meta["format"] = kwargs.pop("fmt")
+        if kwargs.get("sequence") is None:
+            raise LirisError("liris eval", "give a SEQUENCE (or --config RUN/config.yaml)")
+        if not kwargs.get("protocols"):
+            raise LirisError("liris eval", "give --protocol 1 and/or --protocol 2")
+        # a descriptor list given here replaces the recorded one, with its parameters
+        if ctx.get_parameter_source("descriptor_text") == ParameterSource.COMMANDLINE:
+            if ctx.get_parameter_source("params") == ParameterSource.DEFAULT_MAP:
+                kwargs["params"] = ()
+            if ctx.get_parameter_source("externals") == ParameterSource.DEFAULT_MAP:
+                meta["externals"] = []
+        if ctx.get_parameter_source("externals") == ParameterSource.COMMANDLINE and \
+                ctx.get_parameter_source("descriptor_text") == ParameterSource.DEFAULT_MAP:
+            kwargs["descriptor_text"] = None
+            kwargs["params"] = ()
+        if not kwargs.get("descriptor_text") and not meta["externals"]:
+            raise LirisError("--descriptor", "give at least one descriptor (or --external)")
+        return func(*args, **kwargs)
+
+    return wrapper
+
+
+def _meta() -> dict:
+    return click.get_current_context().meta.get(_META, {})
+
+
+def externals_for(seq) -> list:
+    """The ``--external`` descriptors, loaded and checked against ``seq``'s scan count."""
+    from lidar_iris_eval.descriptors.external import load_external, parse_external_spec
+
+    meta = _meta()
+    out = []
+    for spec in meta.get("externals", []):
+        name, path = parse_external_spec(spec)
+        out.append(load_external(name, path, len(seq), meta.get("external_metric")))
+    return out
+
+
+def table_format() -> str:
+    return _meta().get("format", "table")
+
+
+def config_extra(convention=None) -> dict:
+    """Extra ``config.yaml`` keys: the command line, provenance and the convention preset."""
+    from lidar_iris_eval.runs.replay import provenance
+
+    extra = {"command": provenance()}
+    if _meta().get("config"):
+        extra["command"]["replayed_from"] = _meta()["config"]
+    if convention is not None:
+        fields = convention.to_dict()
+        extra["convention"] = {"preset": fields.pop("name"), **fields}
+        if convention.exclude_seconds is not None:  # the frame window is not used
+            extra["exclude"] = {"value": None, "seconds": convention.exclude_seconds,
+                                "preset": "seconds"}
+    return extra
+
+
+def extract_all(seq, descriptors, cache, workers: int, quiet: bool):
+    """One DescriptorDB per descriptor: extracted (or cached) ones and external files."""
+    from lidar_iris_eval.descriptors.external import ExternalDescriptor, external_database
+    from lidar_iris_eval.extract import extract
+
+    dbs = []
+    for d in descriptors:
+        if isinstance(d, ExternalDescriptor):
+            dbs.append(external_database(d, seq.name, seq.fingerprint()))
+        else:
+            dbs.append(extract(seq, d, cache=cache, workers=workers, progress=not quiet))
+    return dbs
