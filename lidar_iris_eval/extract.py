@@ -276,7 +276,7 @@ def _compute_chunks(seq, descriptor, todo, workers, bar) -> Iterable:
     with ProcessPoolExecutor(
         max_workers=min(workers, len(todo)),
         initializer=_init_worker,
-        initargs=(seq, descriptor),
+        initargs=(seq, descriptor, os.getpid()),
     ) as pool:
         futures = {pool.submit(_worker_range, a, b): (a, b) for a, b in todo}
         try:
@@ -359,7 +359,11 @@ def _raise_errors(result):
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(seq, descriptor) -> None:
+def _init_worker(seq, descriptor, parent_pid: int | None = None) -> None:
+    if parent_pid is not None:  # a SIGKILLed liris must not leave workers computing
+        from lidar_iris_eval.lifetime import die_with_parent
+
+        die_with_parent(parent_pid)
     _WORKER["seq"], _WORKER["descriptor"] = seq, descriptor
 
 

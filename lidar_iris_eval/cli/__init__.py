@@ -7,6 +7,7 @@ library so that researchers can import it.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import warnings
@@ -61,6 +62,26 @@ def _register_commands() -> None:
 _register_commands()
 
 
+class FiniteFloat(click.types.FloatParamType):
+    """A float option that refuses ``nan`` and ``inf`` (Python's float() accepts both)."""
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number
+
+
+def _finite_floats() -> None:
+    """Give every float option of every subcommand the finite check, in one place."""
+    finite = FiniteFloat()
+    for command in cli.commands.values():
+        for param in command.params:
+            if isinstance(param.type, click.types.FloatParamType) and not isinstance(
+                    param.type, FiniteFloat):
+                param.type = finite
+
+
 def _register_reader_flags() -> None:
     """Let library errors name reader keywords by the flags that set them.
 
@@ -79,6 +100,7 @@ def _register_reader_flags() -> None:
 
 
 _register_reader_flags()
+_finite_floats()
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import click
@@ -13,6 +14,7 @@ from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_opt
 from lidar_iris_eval.descriptors import Descriptor, get_descriptor
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract
+from lidar_iris_eval.io.sequence import full_scan_hashing
 
 
 def parse_descriptor_specs(text: str, preset: str | None) -> list[tuple[str, str | None]]:
@@ -62,6 +64,20 @@ def build_descriptors(text: str, preset: str | None, sensor: str | None = None,
     ]
 
 
+def verify_scans_option(func):
+    """``--verify-scans``: run the command with every scan hashed in full for cache keys."""
+
+    @click.option("--verify-scans", is_flag=True,
+                  help="Key the cache by a hash of every byte of every scan (slow; catches any "
+                       "edit). Default: each file's name, size, modification time and ends.")
+    @functools.wraps(func)
+    def wrapper(*args, verify_scans: bool = False, **kwargs):
+        with full_scan_hashing(verify_scans):
+            return func(*args, **kwargs)
+
+    return wrapper
+
+
 def descriptor_options(func):
     """``--descriptor``, ``--preset``, ``--cache-dir``, ``--workers``, ``--quiet``."""
     options = [
@@ -81,6 +97,7 @@ def descriptor_options(func):
         click.option("--workers", type=int, default=1, show_default=True,
                      help="Processes for extraction."),
         click.option("--quiet", "-q", is_flag=True, help="No progress bars."),
+        verify_scans_option,
     ]
     for option in reversed(options):
         func = option(func)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, option
 
 PLANAR_AXES = {"camera": (0, 2), "lidar": (0, 1)}
 DISTANCES = ("3d", "planar")
@@ -134,8 +134,8 @@ def compute_ground_truth(
     frame: str = "camera",
 ) -> GroundTruth:
     """Ground truth from ``(N, 3)`` translations expressed in ``frame``."""
-    if radius <= 0:
-        raise LirisError(f"--radius {radius}", "radius must be positive")
+    if not 0 < radius < np.inf:  # NaN fails too
+        raise LirisError(option("radius", radius), "radius must be a positive finite number")
     if exclude < 1:
         raise LirisError(f"--exclude {exclude}", "exclusion window must be at least 1 frame")
     coords = gt_coordinates(positions, frame, distance)

@@ -23,6 +23,7 @@ import re
 import shutil
 import socket
 import tempfile
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,22 @@ def check_run_dir(out: str | os.PathLike, overwrite: bool) -> Path:
     if out.exists() and not out.is_dir():
         raise LirisError(out, "exists and is not a directory")
     check_writable_dir(out, "run folder")
+    return out
+
+
+def default_run_dir(name: str, root: str | os.PathLike = "results") -> Path:
+    """``<root>/<name>-<date>-<time>.<microseconds>``, unused at the time of the call.
+
+    Microseconds keep two runs started in the same second apart (seconds did
+    not); a name that still exists gets ``-2``, ``-3``... and a run that
+    appears while this one works is never replaced (see :meth:`RunWriter.commit`).
+    """
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S.%f")
+    base = Path(root) / f"{name}-{stamp}"
+    out, k = base, 1
+    while out.exists():
+        k += 1
+        out = base.with_name(f"{base.name}-{k}")
     return out
 
 

@@ -6,6 +6,8 @@ a 4541-scan KITTI sequence opens instantly; a scan is read when indexed.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import hashlib
 import importlib
 from collections.abc import Callable, Iterator
@@ -133,19 +135,51 @@ class Sequence(SequenceABC):
     def fingerprint(self) -> str:
         """A content fingerprint of the scans, for cache keys.
 
-        Hashes each file's name, size and its first and last 4 KiB: cheap for
-        thousands of scans, and unlike modification times it survives copying.
+        Hashes each file's name, size, modification time and its first and
+        last 4 KiB: cheap for thousands of scans. The modification time catches
+        an in-place edit that keeps the size and both ends (a copy without
+        ``cp -p`` therefore misses the cache once). Inside
+        :func:`full_scan_hashing` (``--verify-scans``) every byte is hashed.
         """
         digest = hashlib.sha256()
         hash_file_samples(digest, self.scan_paths)
         return digest.hexdigest()[:16]
 
 
+_FULL_HASH: contextvars.ContextVar[bool] = contextvars.ContextVar("liris_full_hash",
+                                                                  default=False)
+
+
+@contextlib.contextmanager
+def full_scan_hashing(enabled: bool = True) -> Iterator[None]:
+    """Within this block, fingerprints hash every byte of every scan file.
+
+    Slow (reads the whole dataset) but catches any change; the cache keys
+    differ from sampled fingerprints, so verified results are cached apart.
+    """
+    token = _FULL_HASH.set(enabled)
+    try:
+        yield
+    finally:
+        _FULL_HASH.reset(token)
+
+
 def hash_file_samples(digest, paths: list[Path]) -> None:
-    """Feed each file's name, size and first and last 4 KiB into ``digest``."""
+    """Feed each file's name, size, mtime and first and last 4 KiB into ``digest``.
+
+    Inside :func:`full_scan_hashing`, the name, size and every byte instead.
+    """
+    full = _FULL_HASH.get()
     for path in paths:
-        size = path.stat().st_size
-        digest.update(f"{path.name}:{size};".encode())
+        stat = path.stat()
+        size = stat.st_size
+        if full:
+            digest.update(f"{path.name}:{size}:full;".encode())
+            with open(path, "rb") as handle:
+                for block in iter(lambda: handle.read(1 << 20), b""):
+                    digest.update(block)
+            continue
+        digest.update(f"{path.name}:{size}:{stat.st_mtime_ns};".encode())
         with open(path, "rb") as handle:
             digest.update(handle.read(FINGERPRINT_SAMPLE_BYTES))
             if size > 2 * FINGERPRINT_SAMPLE_BYTES:
