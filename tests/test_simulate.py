@@ -137,7 +137,7 @@ def test_same_seed_gives_identical_bytes(tmp_path):
     b = simulate_sequence(tmp_path / "b", preset="tiny-mixed", frames=6, azimuth_steps=64)
     c = simulate_sequence(tmp_path / "c", preset="tiny-mixed", frames=6, azimuth_steps=64, seed=99)
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
-    assert len(files) == 6 * 2 + 4
+    assert len(files) == 6 * 3 + 4  # velodyne, labels, object_ids per scan; 4 metadata
     for rel in files:
         assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
     assert (a / "velodyne/000003.bin").read_bytes() != (c / "velodyne/000003.bin").read_bytes()

@@ -66,6 +66,24 @@ class Scenario:
             return near
         return Primitives.concat([near, self.traffic.primitives(frame, self.world.ground)])
 
+    def object_ids(self, frame: int, rows: np.ndarray) -> np.ndarray:
+        """Per-point object ids from the primitive ``rows`` a scan of ``frame`` hit.
+
+        0 is the ground (row -1); static objects keep the world's ids; a moving
+        car ``k`` gets ``n_static + 1 + k``. Stable across frames, so the same
+        physical object carries the same id in every scan.
+        """
+        objects = self.world.objects
+        n_static = int(objects.max(initial=0))
+        table = objects[self.world.near_rows(self.poses[frame, :2, 3], self.sensor.max_range)]
+        if self.traffic is not None:
+            moving = self.traffic.primitives(frame, self.world.ground)
+            first = self.traffic.first_instance
+            extra = n_static + 1 + (moving.instance.astype(np.int64) - first)
+            table = np.concatenate([table, extra.astype(np.uint32)])
+        table = np.concatenate([table.astype(np.uint32), np.zeros(1, np.uint32)])
+        return table[np.where(rows < 0, len(table) - 1, rows)]
+
 
 def _grid_lines(xs: np.ndarray, ys: np.ndarray, extend: float) -> list[np.ndarray]:
     vertical = [np.array([[x, ys[0] - extend], [x, ys[-1] + extend]]) for x in xs]
@@ -161,7 +179,8 @@ def run_simulation(
         rng = np.random.default_rng([cfg.seed, _NOISE, i])
         scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(i), scen.poses[i],
                              rng, dirs)
-        write_scan(out_dir, i, scan.points, scan.intensity, scan.label)
+        write_scan(out_dir, i, scan.points, scan.intensity, scan.label,
+                   scen.object_ids(i, scan.row))
         total_points += len(scan.points)
     remove_stale(out_dir, n)
     revisits = revisit_queries(scen.poses[:, :3, 3])

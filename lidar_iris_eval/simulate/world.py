@@ -58,12 +58,18 @@ class World:
 
     ground: Ground
     prims: Primitives
+    #: per primitive row, the id (1, 2, ...) of the physical object it belongs to
+    objects: np.ndarray | None = None
+
+    def near_rows(self, xy: np.ndarray, radius: float) -> np.ndarray:
+        """Rows of the primitives whose bounding sphere reaches within ``radius`` of ``xy``."""
+        p = self.prims
+        dist = np.hypot(p.center[:, 0] - xy[0], p.center[:, 1] - xy[1])
+        return np.nonzero(dist - p.bounding_radius <= radius)[0]
 
     def near(self, xy: np.ndarray, radius: float) -> Primitives:
         """Primitives whose bounding sphere reaches within ``radius`` of ``xy``."""
-        p = self.prims
-        dist = np.hypot(p.center[:, 0] - xy[0], p.center[:, 1] - xy[1])
-        return p.take(np.nonzero(dist - p.bounding_radius <= radius)[0])
+        return self.prims.take(self.near_rows(xy, radius))
 
 
 def resample_polyline(points: np.ndarray, step: float) -> np.ndarray:
@@ -161,6 +167,11 @@ class _Placer:
         f = world_ground.region_cell / self.cell
         self.occ = np.zeros((int(sh[0] * f) + 1, int(sh[1] * f) + 1), dtype=bool)
         self.next_instance = 1
+        self.object_starts: list[int] = []  # first row of each placed object
+
+    def _new_object(self) -> None:
+        """Mark the rows appended from now on as one new physical object."""
+        self.object_starts.append(len(self.rows))
 
     # -- raster helpers --------------------------------------------------
     def _footprint(self, cx, cy, hx, hy, yaw, step):
@@ -202,6 +213,7 @@ class _Placer:
 
     # -- objects ---------------------------------------------------------
     def building(self, cx, cy, hx, hy, yaw) -> None:
+        self._new_object()
         rng = self.rng
         h = rng.uniform(4.0, 11.0) if rng.random() < 0.55 else rng.uniform(11.0, 30.0)
         z0 = self.base(cx, cy) - 1.0
@@ -233,6 +245,7 @@ class _Placer:
         self.claim(cx, cy, hx, hy, yaw)
 
     def tree(self, x, y) -> None:
+        self._new_object()
         rng = self.rng
         z0 = self.base(x, y)
         trunk_h = rng.uniform(1.5, 3.5)
@@ -246,6 +259,7 @@ class _Placer:
         self.claim(x, y, 0.6, 0.6, 0.0)
 
     def pole(self, x, y, yaw, sign: bool) -> None:
+        self._new_object()
         rng = self.rng
         z0 = self.base(x, y)
         h = rng.uniform(2.6, 3.2) if sign else rng.uniform(6.0, 10.0)
@@ -259,12 +273,14 @@ class _Placer:
         self.claim(x, y, 0.3, 0.3, 0.0)
 
     def car(self, x, y, yaw, label=labels.CAR) -> None:
+        self._new_object()
         self.rows.extend(car_rows(self.rng, x, y, self.base(x, y) - self.g.curb, yaw, label,
                                   self.next_instance))
         self.next_instance += 1
         self.claim(x, y, 2.4, 1.0, yaw)
 
     def wall(self, x, y, hx, hy, yaw, hedge: bool) -> None:
+        self._new_object()
         h = self.rng.uniform(0.9, 1.9)
         z0 = self.base(x, y) - 0.3
         cls = labels.VEGETATION if hedge else labels.FENCE
@@ -391,4 +407,6 @@ def build_world(
     for line in lines:
         for side in (1, -1):
             _walk_side(placer, line, side)
-    return World(ground, make_primitives(placer.rows))
+    starts = np.asarray(placer.object_starts, dtype=np.int64)
+    objects = np.searchsorted(starts, np.arange(len(placer.rows)), side="right").astype(np.uint32)
+    return World(ground, make_primitives(placer.rows), objects)

@@ -1,7 +1,10 @@
 """Writing a simulated sequence in the KITTI odometry layout.
 
 ``velodyne/NNNNNN.bin`` (float32 x y z intensity), ``labels/NNNNNN.label``
-(SemanticKITTI uint32: class | instance << 16), ``poses.txt`` (camera frame,
+(SemanticKITTI uint32: class | instance << 16), ``object_ids/NNNNNN.npy``
+(uint32 per point: the physical object hit, 0 for the ground, the same id in
+every scan; SemanticKITTI gives "stuff" such as buildings instance 0, so this
+sits beside the labels instead of changing them), ``poses.txt`` (camera frame,
 first pose identity), ``times.txt``, ``calib.txt`` (``P0:``..``P3:`` and
 ``Tr:``) and ``manifest.json``. Every file is written to a temporary name in
 the same folder and moved into place with :func:`os.replace`, so an
@@ -10,6 +13,7 @@ interrupted run never leaves a half-written file under a final name.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from pathlib import Path
@@ -100,11 +104,12 @@ def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
         raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
     (out_dir / "velodyne").mkdir(parents=True, exist_ok=True)
     (out_dir / "labels").mkdir(parents=True, exist_ok=True)
+    (out_dir / "object_ids").mkdir(parents=True, exist_ok=True)
 
 
 def remove_stale(out_dir: Path, frames: int) -> None:
     """Delete scans and labels numbered ``frames`` or above left by an older run."""
-    for sub, ext in (("velodyne", ".bin"), ("labels", ".label")):
+    for sub, ext in (("velodyne", ".bin"), ("labels", ".label"), ("object_ids", ".npy")):
         for path in (out_dir / sub).glob(f"*{ext}"):
             stem = path.stem
             if stem.isdigit() and int(stem) >= frames:
@@ -112,13 +117,18 @@ def remove_stale(out_dir: Path, frames: int) -> None:
 
 
 def write_scan(out_dir: Path, index: int, points: np.ndarray, intensity: np.ndarray,
-               label: np.ndarray) -> None:
-    """One scan's ``.bin`` and ``.label`` files."""
+               label: np.ndarray, objects: np.ndarray | None = None) -> None:
+    """One scan's ``.bin`` and ``.label`` files (and ``object_ids/*.npy`` when given)."""
     data = np.empty((len(points), 4), dtype="<f4")
     data[:, :3] = points
     data[:, 3] = intensity
     atomic_write(out_dir / "velodyne" / f"{index:06d}.bin", data.tobytes())
     atomic_write(out_dir / "labels" / f"{index:06d}.label", label.astype("<u4").tobytes())
+    if objects is not None:
+        buf = io.BytesIO()
+        np.save(buf, np.asarray(objects, dtype="<u4"), allow_pickle=False)
+        (out_dir / "object_ids").mkdir(exist_ok=True)
+        atomic_write(out_dir / "object_ids" / f"{index:06d}.npy", buf.getvalue())
 
 
 def write_metadata(out_dir: Path, lidar_poses: np.ndarray, tr: np.ndarray,

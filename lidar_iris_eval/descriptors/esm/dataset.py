@@ -1,0 +1,141 @@
+"""Segment data sets from simulated worlds, for training ESM and for its own metrics.
+
+Every scan of a simulated sequence is segmented exactly as at run time
+(ground removed by its labels) and each segment is tagged with the physical
+object most of its points hit (the simulator's per-point object ids), that
+object's coarse class, the frame and the segment's centroid in the world.
+
+Two segments are a **true pair** ("the same physical object seen from two
+poses") when they carry the same object id, both are at least ``purity`` pure,
+their world centroids lie within ``pair_radius`` metres (a long facade split
+into pieces gives several segments per scan; only the same piece counts) and
+their frames are at least ``min_frame_gap`` apart (neighbouring scans would be
+near-duplicates). Negatives for training are other objects of the same class.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams, segment_scan
+
+#: SemanticKITTI class -> coarse class used for within-class negatives
+COARSE = {10: 1, 252: 1, 50: 2, 70: 3, 71: 3, 80: 4, 81: 4, 51: 5}
+COARSE_NAMES = {0: "other", 1: "car", 2: "building", 3: "vegetation", 4: "pole", 5: "fence"}
+
+
+@dataclass
+class SegmentSet:
+    """Raw segments (voxel points in the sensor frame) with their tags.
+
+    ``points[offsets[s]:offsets[s + 1]]`` are segment ``s``'s voxel points.
+    """
+
+    points: np.ndarray  # (P, 3) float32
+    offsets: np.ndarray  # (S + 1,) int64
+    object_id: np.ndarray  # (S,) int64 (0: no dominant object)
+    coarse: np.ndarray  # (S,) int8
+    frame: np.ndarray  # (S,) int64
+    world: np.ndarray  # (S, 3) centroid in the world frame
+    purity: np.ndarray  # (S,) fraction of points on the dominant object
+    world_id: np.ndarray  # (S,) which simulated world (seed index)
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def segment(self, s: int) -> np.ndarray:
+        return self.points[self.offsets[s]:self.offsets[s + 1]]
+
+    def save(self, path) -> None:
+        np.savez_compressed(path, **{k: getattr(self, k) for k in self.__dataclass_fields__})
+
+    @classmethod
+    def load(cls, path) -> SegmentSet:
+        with np.load(path) as z:
+            return cls(**{k: z[k] for k in cls.__dataclass_fields__})
+
+    @staticmethod
+    def concat(parts: list[SegmentSet]) -> SegmentSet:
+        offs, base = [np.zeros(1, np.int64)], 0
+        for p in parts:
+            offs.append(p.offsets[1:] + base)
+            base += int(p.offsets[-1])
+        out = {k: np.concatenate([getattr(p, k) for p in parts])
+               for k in SegmentSet.__dataclass_fields__ if k != "offsets"}
+        return SegmentSet(offsets=np.concatenate(offs), **out)
+
+
+def simulate_segments(
+    config_overrides: dict, world_index: int = 0, params: SegmentParams | None = None,
+    every: int = 1, progress: bool = True,
+) -> SegmentSet:
+    """Simulate a sequence in memory and segment every ``every``-th scan."""
+    from lidar_iris_eval.simulate.pipeline import _NOISE, build_scenario
+    from lidar_iris_eval.simulate.presets import resolve_config
+    from lidar_iris_eval.simulate.sensors import simulate_scan
+
+    cfg = resolve_config(None, config_overrides)
+    scen = build_scenario(cfg)
+    dirs = scen.sensor.grid.directions
+    pts, offs, obj, coarse, frame, world, purity = [], [0], [], [], [], [], []
+    frames = range(0, len(scen.poses), every)
+    for i in tqdm(frames, desc=f"segments world {world_index}", disable=not progress,
+                  leave=False):
+        rng = np.random.default_rng([cfg.seed, _NOISE, i])
+        scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(i), scen.poses[i],
+                             rng, dirs)
+        ids = scen.object_ids(i, scan.row)
+        segs = segment_scan(scan.points, scan.label, params)
+        pose = scen.poses[i]
+        for s in range(len(segs)):
+            m = segs.members[s]
+            vals, counts = np.unique(ids[m], return_counts=True)
+            top = int(np.argmax(counts))
+            dominant = int(vals[top])
+            cls_vals, cls_counts = np.unique(scan.label[m][ids[m] == dominant] & 0xFFFF,
+                                             return_counts=True)
+            cls = int(cls_vals[np.argmax(cls_counts)])
+            raw = _voxel_points(scan.points[m], params)
+            pts.append(raw.astype(np.float32))
+            offs.append(offs[-1] + len(raw))
+            obj.append(dominant)
+            coarse.append(COARSE.get(cls, 0))
+            frame.append(i)
+            world.append(pose[:3, :3] @ segs.centroids[s] + pose[:3, 3])
+            purity.append(counts[top] / counts.sum())
+    n = len(frame)
+    return SegmentSet(
+        points=np.concatenate(pts) if pts else np.zeros((0, 3), np.float32),
+        offsets=np.asarray(offs, np.int64), object_id=np.asarray(obj, np.int64),
+        coarse=np.asarray(coarse, np.int8), frame=np.asarray(frame, np.int64),
+        world=np.asarray(world).reshape(n, 3), purity=np.asarray(purity),
+        world_id=np.full(n, world_index, np.int64),
+    )
+
+
+def _voxel_points(points: np.ndarray, params: SegmentParams | None) -> np.ndarray:
+    from lidar_iris_eval.descriptors.esm.segmentation import voxelise
+
+    p = params or SegmentParams()
+    vox, _ = voxelise(np.asarray(points, np.float64), p.voxel)
+    return vox
+
+
+def true_pairs(
+    data: SegmentSet, pair_radius: float = 2.0, min_frame_gap: int = 10, purity: float = 0.8
+) -> np.ndarray:
+    """(n, 2) index pairs (a < b) of segments showing the same piece of the same object."""
+    from scipy.spatial import cKDTree
+
+    ok = (data.object_id > 0) & (data.purity >= purity)
+    idx = np.nonzero(ok)[0]
+    key = data.world[idx] + 1e4 * data.world_id[idx, None]
+    pairs = cKDTree(key).query_pairs(pair_radius, output_type="ndarray")
+    a, b = idx[pairs[:, 0]], idx[pairs[:, 1]]
+    same = (data.object_id[a] == data.object_id[b]) & (data.world_id[a] == data.world_id[b])
+    same &= np.abs(data.frame[a] - data.frame[b]) >= min_frame_gap
+    out = np.stack([a[same], b[same]], axis=1)
+    return np.sort(out, axis=1)

@@ -1,0 +1,61 @@
+"""ESM's own segment-retrieval metrics (as SegMap and ESM report them).
+
+For held-out segments with known true pairs (:func:`dataset.true_pairs`):
+
+* **ROC** over all segment pairs whose frames are at least ``min_frame_gap``
+  apart: true pairs are positives, every other pair a negative, ranked by
+  squared L2 embedding distance; AUC by the rank-sum (Mann-Whitney) formula;
+* **accuracy@k**: among queries that have at least one true partner, the
+  fraction whose ``k`` nearest segments (frames within ``min_frame_gap`` of the
+  query excluded, as in loop closure) contain one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import rankdata
+
+
+def roc_auc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """AUC of "a positive scores lower (closer) than a negative", ties counted half."""
+    if len(pos) == 0 or len(neg) == 0:
+        return float("nan")
+    ranks = rankdata(np.concatenate([-pos, -neg]))
+    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
+def roc_curve(pos: np.ndarray, neg: np.ndarray, n: int = 101) -> tuple[np.ndarray, np.ndarray]:
+    """(FPR, TPR) at ``n`` distance thresholds spanning both samples."""
+    thr = np.quantile(np.concatenate([pos, neg]), np.linspace(0, 1, n))
+    tpr = np.searchsorted(np.sort(pos), thr, side="right") / max(len(pos), 1)
+    fpr = np.searchsorted(np.sort(neg), thr, side="right") / max(len(neg), 1)
+    return fpr, tpr
+
+
+def retrieval_metrics(
+    emb: np.ndarray, frame: np.ndarray, pairs: np.ndarray, min_frame_gap: int = 10,
+    ks: tuple = (1, 5, 10, 25), world: np.ndarray | None = None,
+) -> dict:
+    """ROC AUC, a coarse ROC and accuracy@k of embeddings ``emb`` (S, d)."""
+    n = len(emb)
+    world = np.zeros(n, np.int64) if world is None else world
+    sq = (emb**2).sum(1)
+    d2 = np.maximum(sq[:, None] + sq[None, :] - 2 * emb @ emb.T, 0.0)
+    valid = (np.abs(frame[:, None] - frame[None, :]) >= min_frame_gap)
+    valid &= world[:, None] == world[None, :]
+    truth = np.zeros((n, n), bool)
+    truth[pairs[:, 0], pairs[:, 1]] = True
+    truth[pairs[:, 1], pairs[:, 0]] = True
+    iu = np.triu_indices(n, 1)
+    v = valid[iu]
+    pos = d2[iu][v & truth[iu]]
+    neg = d2[iu][v & ~truth[iu]]
+    fpr, tpr = roc_curve(pos, neg)
+    masked = np.where(valid, d2, np.inf)
+    order = np.argsort(masked, axis=1)[:, : max(ks)]
+    has = truth.any(axis=1)
+    hit = np.take_along_axis(truth, order, axis=1)[has]
+    acc = {int(k): float(hit[:, :k].any(axis=1).mean()) if has.any() else None for k in ks}
+    return {"auc": roc_auc(pos, neg), "positives": int(len(pos)), "negatives": int(len(neg)),
+            "queries": int(has.sum()), "accuracy_at_k": acc,
+            "roc": {"fpr": fpr.round(4).tolist(), "tpr": tpr.round(4).tolist()}}

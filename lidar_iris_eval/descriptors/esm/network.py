@@ -1,0 +1,172 @@
+"""ESM's segment network, inference in NumPy (no deep-learning package at run time).
+
+Architecture (ESM, Tinchev et al. 2019, after PointCNN's X-Conv; sizes named
+here because the paper leaves them blank):
+
+* input: 256 normalised points per segment, no input features;
+* four X-Conv layers, (K, dilation) = (8, 1), (12, 3), (16, 3), (16, 4), with
+  representative points 256 -> 128 -> 64 -> 32 (the first ``R`` points of the
+  seeded, randomly ordered resample, so the choice is deterministic), output
+  channels 32, 64, 96, 128 and lifted-coordinate channels 16, 16, 24, 32.
+  Each layer, for every representative point:
+
+  1. its ``K * D`` nearest points of the previous layer, sorted by distance,
+     every ``D``-th kept (``K`` neighbours), in coordinates relative to it;
+  2. the local coordinates lifted by two dense layers (ELU) and concatenated
+     with the neighbours' previous features;
+  3. a ``K x K`` matrix X from the flattened local coordinates: a dense layer
+     to ``K * K`` (ELU), then two per-row ``K x K`` layers (PointCNN's
+     depthwise refinement; ELU after the first, linear after the second);
+  4. ``X @ F``, then a separable convolution over the K neighbours (depthwise
+     with multiplier ``dm``, pointwise to C), batch norm (folded to an affine
+     map at inference) and ELU;
+
+* three fully connected layers per point, 64 -> 64 (ELU) -> 32 (ELU, dropout
+  0.5 in training) -> 16, averaged over the 32 points: the 16-d embedding;
+* quality branch: one dense layer 16 -> 2 with a softmax on the (frozen)
+  embedding; the quality is the probability of "a true match is among the
+  k nearest neighbours".
+
+Weights are one ``.npz`` (names below); :func:`load_weights` checks its
+checksum against the model card when asked.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+WEIGHTS_FILE = Path(__file__).with_name("esm_weights.npz")
+
+
+@dataclass(frozen=True)
+class Arch:
+    """Sizes of the network (stored in the weights file)."""
+
+    n_points: int = 256
+    reps: tuple = (256, 128, 64, 32)
+    k: tuple = (8, 12, 16, 16)
+    dilation: tuple = (1, 3, 3, 4)
+    channels: tuple = (16, 32, 48, 64)
+    lifted: tuple = (8, 8, 12, 16)
+    depth_mult: tuple = (1, 1, 1, 1)
+    fc: tuple = (64, 32, 16)
+    bn_eps: float = 1e-5
+
+    def to_json(self) -> str:
+        return json.dumps({k: list(v) if isinstance(v, tuple) else v
+                           for k, v in self.__dict__.items()})
+
+    @classmethod
+    def from_json(cls, text: str) -> Arch:
+        raw = json.loads(text)
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in raw.items()})
+
+
+def elu(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+
+
+def neighbour_index(points: np.ndarray, arch: Arch) -> list[np.ndarray]:
+    """Per layer, (S, R, K) indices of each representative point's dilated neighbours.
+
+    Layer ``l``'s representatives are the first ``reps[l]`` points and its
+    neighbours are taken among the previous layer's points (the first
+    ``reps[l-1]``, all points for the first layer): the ``K * D`` nearest by a
+    k-d tree (float64 distances), every ``D``-th kept. This is not learned, so
+    training computes it with this same function and feeds the indices to the
+    framework; both forwards then differ only by floating-point rounding.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)
+    out = []
+    prev_n = pts.shape[1]
+    for r, k, d in zip(arch.reps, arch.k, arch.dilation, strict=True):
+        idx = np.empty((len(pts), r, k), dtype=np.int64)
+        for s in range(len(pts)):
+            _, nn = cKDTree(pts[s, :prev_n]).query(pts[s, :r], k=k * d)
+            idx[s] = nn.reshape(r, k * d)[:, ::d]
+        out.append(idx)
+        prev_n = r
+    return out
+
+
+def _gather(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """a (S, N, C), idx (S, R, K) -> (S, R, K, C)."""
+    s = np.arange(a.shape[0])[:, None, None]
+    return a[s, idx]
+
+
+def xconv(w: dict, name: str, arch: Arch, layer: int, prev_pts: np.ndarray,
+          prev_feat: np.ndarray | None, idx: np.ndarray) -> tuple:
+    """One X-Conv layer; returns (representative points, their features)."""
+    r, k = arch.reps[layer], arch.k[layer]
+    reps = prev_pts[:, :r]
+    local = _gather(prev_pts, idx) - reps[:, :, None, :]  # (S,R,K,3)
+    f = elu(local @ w[f"{name}.lift1.w"] + w[f"{name}.lift1.b"])
+    f = elu(f @ w[f"{name}.lift2.w"] + w[f"{name}.lift2.b"])
+    if prev_feat is not None:
+        f = np.concatenate([f, _gather(prev_feat, idx)], axis=3)
+    s_ = local.shape[0]
+    x = elu(local.reshape(s_, r, k * 3) @ w[f"{name}.xt0.w"] + w[f"{name}.xt0.b"])
+    x = x.reshape(s_ * r, k, k).transpose(1, 0, 2)  # (K_i, S*R, K_j)
+    x = elu(np.matmul(x, w[f"{name}.xt1.w"]) + w[f"{name}.xt1.b"][:, None, :])
+    x = np.matmul(x, w[f"{name}.xt2.w"]) + w[f"{name}.xt2.b"][:, None, :]
+    x = x.transpose(1, 0, 2).reshape(s_, r, k, k)
+    fx = np.matmul(x, f)  # (S,R,K,C*)
+    c_in = fx.shape[3]
+    dw = w[f"{name}.dw.w"]  # (K, C*, dm)
+    fx = fx.reshape(s_ * r, k, c_in).transpose(2, 0, 1)  # (C*, S*R, K)
+    dep = np.matmul(fx, dw.transpose(1, 0, 2))  # (C*, S*R, dm)
+    dep = dep.transpose(1, 0, 2).reshape(s_, r, c_in * dw.shape[2])
+    out = dep @ w[f"{name}.pw.w"] + w[f"{name}.pw.b"]
+    scale = w[f"{name}.bn.gamma"] / np.sqrt(w[f"{name}.bn.var"] + arch.bn_eps)
+    out = (out - w[f"{name}.bn.mean"]) * scale + w[f"{name}.bn.beta"]
+    return reps, elu(out)
+
+
+def per_point_features(w: dict, arch: Arch, points: np.ndarray,
+                       idx: list[np.ndarray] | None = None) -> np.ndarray:
+    """(S, R4, fc[-1]) per-point outputs before the average."""
+    pts = np.asarray(points, dtype=np.float32)
+    idx = neighbour_index(pts, arch) if idx is None else idx
+    feat = None
+    for layer in range(4):
+        pts, feat = xconv(w, f"x{layer}", arch, layer, pts, feat, idx[layer])
+    h = elu(feat @ w["fc0.w"] + w["fc0.b"])
+    h = elu(h @ w["fc1.w"] + w["fc1.b"])
+    return h @ w["fc2.w"] + w["fc2.b"]
+
+
+def embed(w: dict, arch: Arch, points: np.ndarray, batch: int = 64) -> np.ndarray:
+    """(S, 16) float32 embeddings of (S, 256, 3) normalised segments."""
+    out = np.zeros((len(points), arch.fc[-1]), np.float32)
+    for i in range(0, len(points), batch):
+        out[i:i + batch] = per_point_features(w, arch, points[i:i + batch]).mean(axis=1)
+    return out
+
+
+def quality(w: dict, embeddings: np.ndarray) -> np.ndarray:
+    """P(true match in the k-NN) from the quality branch (softmax's second entry)."""
+    z = embeddings @ w["q.w"] + w["q.b"]
+    z = z - z.max(axis=1, keepdims=True)
+    e = np.exp(z)
+    return (e[:, 1] / e.sum(axis=1)).astype(np.float64)
+
+
+def sha256_of(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def load_weights(path: Path | None = None) -> tuple[dict, Arch]:
+    """Weights (float32 arrays by name) and the architecture stored beside them."""
+    path = Path(path) if path is not None else WEIGHTS_FILE
+    with np.load(path, allow_pickle=False) as z:
+        arch = Arch.from_json(str(z["arch"]))
+        w = {k: z[k].astype(np.float32) for k in z.files if k != "arch"}
+    return w, arch

@@ -1,0 +1,170 @@
+"""ESM's segmentation: one scan -> point segments of 256 normalised points each.
+
+ESM (Tinchev et al., RA-L 2019) takes its segments from SegMap's Euclidean
+segmenter and says only "Euclidean segmentation; each segment downsampled
+uniformly to 256 points, zero-centred, variance-normalised". Everything else
+uses SegMap's defaults (ethz-asl/segmap configs), named here:
+
+1. **range**: points farther than 50 m (horizontal) from the sensor are dropped;
+2. **ground removal**: with per-point SemanticKITTI labels, the ground classes
+   (road 40, parking 44, sidewalk 48, other-ground 49, terrain 72, lane marking 60)
+   are removed ("labels" rule). Without labels, SegMap's height rule: keep
+   ``z > ground_z`` with ``ground_z = -1.0`` m in the sensor frame (tuned by
+   SegMap for KITTI's 1.73 m mount); ``ground_z`` is a parameter for other mounts;
+3. **0.1 m voxel filter**: one point per occupied voxel, the centroid of its points;
+4. **Euclidean growing** at 0.2 m: connected components of the voxel centroids
+   under a 0.2 m neighbour radius (SegMap's ``ec_tolerance``);
+5. **size filter**: 100 to 15,000 points per segment (after the voxel filter);
+6. **resampling** to 256 points: a seeded uniform draw without replacement, or
+   all points plus a seeded draw with replacement when a segment has fewer;
+7. **normalisation** ("variance-normalised"): zero-centred on the segment's mean,
+   then divided by one isotropic scale, the RMS distance of the resampled points
+   from their mean, so the shape keeps its aspect ratio (per-axis scaling would
+   make a pole and a wall look alike). The scale and the centroid are returned
+   beside the normalised points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+#: SemanticKITTI ground classes (road, parking, sidewalk, other-ground, lane marking, terrain)
+GROUND_CLASSES = (40, 44, 48, 49, 60, 72)
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    """Segmentation settings (SegMap defaults; see the module docstring)."""
+
+    max_range: float = 50.0
+    ground_z: float = -1.0
+    voxel: float = 0.1
+    radius: float = 0.2
+    min_points: int = 100
+    max_points: int = 15000
+    n_points: int = 256
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Segments:
+    """Segments of one scan.
+
+    Attributes
+    ----------
+    points : (S, n_points, 3) float32
+        Resampled, zero-centred, scale-normalised points.
+    centroids : (S, 3) float64
+        Mean of each segment's voxel points in the sensor frame (PROSAC's input).
+    scales : (S,) float64
+        The RMS radius each segment was divided by (metres).
+    sizes : (S,) int64
+        Voxel points per segment before resampling.
+    members : list of (n_s,) int64
+        For each segment, indices into the scan's points of the points it holds
+        (every raw point whose voxel belongs to the segment).
+    """
+
+    points: np.ndarray
+    centroids: np.ndarray
+    scales: np.ndarray
+    sizes: np.ndarray
+    members: list
+
+    def __len__(self) -> int:
+        return len(self.centroids)
+
+
+def ground_mask(points: np.ndarray, labels: np.ndarray | None, params: SegmentParams) -> np.ndarray:
+    """True for ground points: by SemanticKITTI class when labels exist, else by height."""
+    if labels is not None:
+        return np.isin(np.asarray(labels) & 0xFFFF, GROUND_CLASSES)
+    return points[:, 2] <= params.ground_z
+
+
+def voxelise(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel centroids and, per input point, the index of its voxel."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse, points)
+    return sums / counts[:, None], inverse
+
+
+def euclidean_clusters(points: np.ndarray, radius: float) -> np.ndarray:
+    """Connected-component label of every point under the neighbour ``radius``."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    n = len(points)
+    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    return comp.astype(np.int64)
+
+
+def normalise(sample: np.ndarray) -> tuple[np.ndarray, float]:
+    """Zero-centre and divide by the RMS radius (isotropic); returns the scale too."""
+    centred = sample - sample.mean(axis=0)
+    scale = float(np.sqrt((centred**2).sum(axis=1).mean()))
+    scale = scale if scale > 1e-9 else 1.0
+    return (centred / scale).astype(np.float32), scale
+
+
+def resample(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points drawn uniformly: without replacement, or all plus repeats if fewer."""
+    if len(points) >= n:
+        return points[rng.choice(len(points), n, replace=False)]
+    extra = rng.choice(len(points), n - len(points), replace=True)
+    return points[rng.permutation(np.concatenate([np.arange(len(points)), extra]))]
+
+
+def segment_scan(
+    points: np.ndarray, labels: np.ndarray | None = None, params: SegmentParams | None = None
+) -> Segments:
+    """Segment one scan (sensor frame) following the module docstring's steps.
+
+    Segments are ordered by the smallest index of their voxels, so the order
+    is deterministic; segment ``s`` is resampled with the stream ``[seed, s]``.
+    """
+    p = params or SegmentParams()
+    pts = np.asarray(points, dtype=np.float64)[:, :3]
+    keep = np.isfinite(pts).all(axis=1)
+    keep &= np.hypot(pts[:, 0], pts[:, 1]) <= p.max_range
+    keep &= ~ground_mask(pts, labels, p)
+    idx = np.nonzero(keep)[0]
+    empty = Segments(np.zeros((0, p.n_points, 3), np.float32), np.zeros((0, 3)), np.zeros(0),
+                     np.zeros(0, np.int64), [])
+    if len(idx) == 0:
+        return empty
+    vox, inverse = voxelise(pts[idx], p.voxel)
+    comp = euclidean_clusters(vox, p.radius)
+    counts = np.bincount(comp)
+    good = np.nonzero((counts >= p.min_points) & (counts <= p.max_points))[0]
+    if len(good) == 0:
+        return empty
+    order = np.argsort(comp, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    point_comp = comp[inverse]
+    point_order = np.argsort(point_comp, kind="stable")
+    point_bounds = np.concatenate([[0], np.cumsum(np.bincount(point_comp, minlength=len(counts)))])
+    out_pts, cents, scales, sizes, members = [], [], [], [], []
+    for s, c in enumerate(good):
+        vi = order[bounds[c]:bounds[c + 1]]
+        seg = vox[vi]
+        rng = np.random.default_rng([p.seed, s])
+        normed, scale = normalise(resample(seg, p.n_points, rng))
+        out_pts.append(normed)
+        cents.append(seg.mean(axis=0))
+        scales.append(scale)
+        sizes.append(len(vi))
+        members.append(idx[point_order[point_bounds[c]:point_bounds[c + 1]]])
+    return Segments(np.stack(out_pts), np.asarray(cents), np.asarray(scales),
+                    np.asarray(sizes, dtype=np.int64), members)

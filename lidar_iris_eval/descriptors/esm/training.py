@@ -1,0 +1,195 @@
+"""Training ESM's network (needs torch: the ``train`` extra). Driven by scripts/train_esm.py.
+
+* **Batches**: ``batch`` true pairs (anchor, positive) of distinct objects.
+* **Augmentation** (SegMap/ESM): a random yaw in [-180, 180) degrees, 0-10 %
+  of the points removed at random, and with probability 1/2 a partial
+  occlusion that removes the points beyond a random vertical plane (0-50 % of
+  the segment); then the run-time resampling to 256 points and normalisation.
+* **Loss** (Wohlhart and Lepetit 2015, as ESM): with squared L2 distances
+  ``d+`` (anchor-positive) and ``d-`` (anchor-negative),
+  ``max(0, 1 - d- / (d+ + m)) + d+`` with ``m = 0.01``, averaged.
+* **Hard negatives within the class**: each anchor's negative is the closest
+  positive of another pair in the batch showing a different object of the same
+  coarse class (any class when the batch has none).
+* **Quality branch**: afterwards, on the frozen embeddings of the training
+  segments, FC(2) + softmax with cross-entropy; label 1 when a true partner is
+  among the segment's 25 nearest neighbours (frames >= 10 apart).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lidar_iris_eval.descriptors.esm import network
+from lidar_iris_eval.descriptors.esm.dataset import COARSE_NAMES, SegmentSet, true_pairs
+from lidar_iris_eval.descriptors.esm.metrics import retrieval_metrics
+from lidar_iris_eval.descriptors.esm.segmentation import normalise, resample
+from lidar_iris_eval.descriptors.esm.torch_net import ESMNet
+
+MARGIN = 0.01
+
+
+def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256) -> np.ndarray:
+    """One augmented, resampled, normalised copy of a raw segment (see module docstring)."""
+    pts = points - points.mean(axis=0)
+    yaw = rng.uniform(-np.pi, np.pi)
+    c, s = np.cos(yaw), np.sin(yaw)
+    pts = pts @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    keep = rng.random(len(pts)) >= rng.uniform(0.0, 0.1)
+    if rng.random() < 0.5:
+        ang = rng.uniform(-np.pi, np.pi)
+        proj = pts[:, 0] * np.cos(ang) + pts[:, 1] * np.sin(ang)
+        cut = np.quantile(proj, 1.0 - rng.uniform(0.0, 0.5))
+        keep &= proj <= cut
+    if keep.sum() >= 20:
+        pts = pts[keep]
+    return normalise(resample(pts, n, rng))[0]
+
+
+def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Embeddings (eval mode, no augmentation, run-time resampling) of segments ``rows``."""
+    net.eval()
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(rows), 128):
+            batch = np.stack([normalise(resample(data.segment(s), net.arch.n_points,
+                                                 np.random.default_rng([seed, int(s)])))[0]
+                              for s in rows[i:i + 128]])
+            idx = network.neighbour_index(batch, net.arch)
+            out.append(net(torch.from_numpy(batch), idx).numpy())
+    return np.concatenate(out) if out else np.zeros((0, net.arch.fc[-1]), np.float32)
+
+
+def wl_loss(ea: torch.Tensor, ep: torch.Tensor, coarse: np.ndarray, objects: np.ndarray):
+    """Ratio triplet loss plus pairwise term with within-class hardest negatives."""
+    d_pos = ((ea - ep) ** 2).sum(1)
+    d_all = ((ea[:, None, :] - ep[None, :, :]) ** 2).sum(2)
+    other = torch.from_numpy(objects[:, None] != objects[None, :])
+    same_cls = torch.from_numpy(coarse[:, None] == coarse[None, :]) & other
+    has_same = same_cls.any(1, keepdim=True)
+    allowed = torch.where(has_same, same_cls, other)
+    d_neg = torch.where(allowed, d_all, torch.full_like(d_all, float("inf"))).min(1).values
+    trip = torch.clamp(1.0 - d_neg / (d_pos + MARGIN), min=0.0)
+    return (trip + d_pos).mean(), trip.detach(), d_pos.detach()
+
+
+def sample_batch(pairs: np.ndarray, data: SegmentSet, batch: int, rng: np.random.Generator):
+    """``batch`` pairs with distinct objects (per world)."""
+    chosen, seen = [], set()
+    for i in rng.permutation(len(pairs)):
+        a, b = pairs[i]
+        key = (int(data.world_id[a]), int(data.object_id[a]))
+        if key in seen:
+            continue
+        seen.add(key)
+        chosen.append((a, b) if rng.random() < 0.5 else (b, a))
+        if len(chosen) == batch:
+            break
+    return np.asarray(chosen)
+
+
+def knn_labels(emb: np.ndarray, data: SegmentSet, rows: np.ndarray, pairs: np.ndarray,
+               k: int = 25, gap: int = 10) -> np.ndarray:
+    """1 where a true partner is among the k nearest (frames >= gap apart), else 0."""
+    pos = {(int(a), int(b)) for a, b in pairs} | {(int(b), int(a)) for a, b in pairs}
+    sq = (emb**2).sum(1)
+    d2 = sq[:, None] + sq[None, :] - 2 * emb @ emb.T
+    fr, wd = data.frame[rows], data.world_id[rows]
+    bad = (np.abs(fr[:, None] - fr[None, :]) < gap) | (wd[:, None] != wd[None, :])
+    d2[bad] = np.inf
+    order = np.argsort(d2, axis=1)[:, :k]
+    return np.array([any((int(rows[i]), int(rows[j])) in pos for j in order[i])
+                     for i in range(len(rows))], dtype=np.int64)
+
+
+def run(train: SegmentSet, valid: SegmentSet, args, stages: set, start: float) -> None:
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    work = Path(args.work)
+    pairs = true_pairs(train)
+    net = ESMNet()
+    ckpt = work / "net.pt"
+    log = {"train_segments": len(train), "train_pairs": int(len(pairs)),
+           "classes": {COARSE_NAMES[c]: int((train.coarse == c).sum())
+                       for c in np.unique(train.coarse)}}
+    if "train" in stages:
+        opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+        deadline = start + args.minutes * 60
+        hist = []
+        for step in range(args.steps):
+            if time.time() > deadline:
+                break
+            net.train()
+            ab = sample_batch(pairs, train, args.batch, rng)
+            pts = np.stack([augment(train.segment(s), rng) for s in ab.ravel()])
+            idx = network.neighbour_index(pts, net.arch)
+            emb = net(torch.from_numpy(pts), idx).reshape(len(ab), 2, -1)
+            loss, trip, dpos = wl_loss(emb[:, 0], emb[:, 1], train.coarse[ab[:, 0]],
+                                       train.object_id[ab[:, 0]])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            hist.append((float(loss), float((trip > 0).float().mean())))
+            if step % 20 == 0:
+                recent = np.mean(hist[-20:], axis=0)
+                print(f"step {step} loss {recent[0]:.4f} active {recent[1]:.2f} "
+                      f"{(time.time() - start) / 60:.1f} min", flush=True)
+            if step % 100 == 99:
+                torch.save(net.state_dict(), ckpt)
+        log["steps"] = len(hist)
+        log["final_loss"] = float(np.mean(hist[-50:], axis=0)[0])
+        torch.save(net.state_dict(), ckpt)
+    else:
+        net.load_state_dict(torch.load(ckpt))
+    if "quality" in stages:
+        for p in net.parameters():
+            p.requires_grad_(False)
+        net.quality.weight.requires_grad_(True)
+        net.quality.bias.requires_grad_(True)
+        rows = np.sort(rng.choice(len(train), min(len(train), 4000), replace=False))
+        emb = embed_eval(net, train, rows)
+        sub_pairs = pairs[np.isin(pairs[:, 0], rows) & np.isin(pairs[:, 1], rows)]
+        y = knn_labels(emb, train, rows, sub_pairs)
+        opt = torch.optim.Adam([net.quality.weight, net.quality.bias], lr=1e-2)
+        x_t, y_t = torch.from_numpy(emb), torch.from_numpy(y)
+        for _ in range(args.quality_steps):
+            loss = torch.nn.functional.cross_entropy(net.quality_logits(x_t), y_t)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        log["quality_positive_rate"] = float(y.mean())
+        log["quality_loss"] = float(loss)
+        torch.save(net.state_dict(), ckpt)
+    if "export" in stages:
+        net.eval()
+        out = Path(args.out) if args.out else network.WEIGHTS_FILE
+        weights = net.export()
+        tmp = out.with_name(out.name + ".tmp.npz")
+        np.savez(tmp, **weights)
+        tmp.replace(out)
+        w, arch = network.load_weights(out)
+        vpairs = true_pairs(valid)
+        rows = np.arange(len(valid))
+        if len(rows) > 3000:
+            rows = np.sort(rng.choice(len(valid), 3000, replace=False))
+        emb = network.embed(w, arch, np.stack([
+            normalise(resample(valid.segment(s), arch.n_points,
+                               np.random.default_rng([0, int(s)])))[0] for s in rows]))
+        remap = -np.ones(len(valid), np.int64)
+        remap[rows] = np.arange(len(rows))
+        keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
+        metrics = retrieval_metrics(emb, valid.frame[rows], remap[vpairs[keep]],
+                                    world=valid.world_id[rows])
+        log["validation"] = {k: v for k, v in metrics.items() if k != "roc"}
+        log["validation_roc"] = metrics["roc"]
+        log["sha256"] = network.sha256_of(out)
+        log["minutes"] = round((time.time() - start) / 60, 1)
+        (work / "validation.json").write_text(json.dumps(log, indent=2))
+        out.with_name("esm_validation.json").write_text(json.dumps(log, indent=2) + "\n")
+        print(json.dumps({k: v for k, v in log.items() if k != "validation_roc"}, indent=2))

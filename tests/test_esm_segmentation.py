@@ -1,0 +1,100 @@
+"""ESM segmentation: hand-made scenes with known segments, and the real KITTI scans."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lidar_iris_eval.descriptors.esm.segmentation import (
+    SegmentParams,
+    euclidean_clusters,
+    normalise,
+    segment_scan,
+    voxelise,
+)
+
+
+def _box(rng, centre, size, n):
+    return np.asarray(centre) + (rng.random((n, 3)) - 0.5) * np.asarray(size)
+
+
+def _scene(rng):
+    """Ground at z=-1.73, a 'car' and a 'pole' (kept) and a 30-point speck (dropped)."""
+    g = np.c_[rng.uniform(-30, 30, (20000, 2)), np.full(20000, -1.73)]
+    car = _box(rng, (8.0, 3.0, -1.0), (4.0, 1.8, 1.4), 6000)
+    pole = _box(rng, (-5.0, -6.0, 1.0), (0.3, 0.3, 6.0), 3000)
+    speck = _box(rng, (0.0, 12.0, 0.0), (0.2, 0.2, 0.2), 30)
+    far = _box(rng, (60.0, 0.0, 0.0), (3.0, 3.0, 3.0), 5000)  # beyond 50 m
+    return np.concatenate([g, car, pole, speck, far])
+
+
+def test_voxelise_one_centroid_per_cell():
+    pts = np.array([[0.01, 0.01, 0.01], [0.09, 0.09, 0.09], [0.15, 0.0, 0.0]])
+    vox, inv = voxelise(pts, 0.1)
+    assert len(vox) == 2
+    assert np.allclose(vox[inv[0]], [0.05, 0.05, 0.05])
+    assert inv[0] == inv[1] != inv[2]
+
+
+def test_euclidean_clusters_join_within_radius_only():
+    line = np.c_[np.arange(10) * 0.15, np.zeros(10), np.zeros(10)]
+    comp = euclidean_clusters(np.concatenate([line, line + [1.65, 0, 0]]), 0.2)
+    # the two lines are 0.3 m apart at their closest points: two components
+    assert len(np.unique(comp)) == 2 and len(np.unique(comp[:10])) == 1
+
+
+def test_geometric_scene_gives_the_two_objects():
+    rng = np.random.default_rng(0)
+    segs = segment_scan(_scene(rng))
+    assert len(segs) == 2
+    cents = segs.centroids[np.argsort(segs.centroids[:, 0])]
+    # the car's lower part (z <= -1.0 m) is removed with the ground by the height rule
+    assert np.allclose(cents[0][:2], [-5.0, -6.0], atol=0.1)
+    assert np.allclose(cents[1][:2], [8.0, 3.0], atol=0.2)
+    assert cents[1][2] > -1.0
+    assert segs.points.shape == (2, 256, 3)
+    assert np.all((segs.sizes >= 100) & (segs.sizes <= 15000))
+
+
+def test_labels_replace_the_height_rule():
+    rng = np.random.default_rng(1)
+    pts = _scene(rng)
+    labels = np.full(len(pts), 10, np.uint32)
+    labels[:20000] = 40  # road
+    segs = segment_scan(pts, labels)
+    car = segs.centroids[np.argmax(segs.centroids[:, 0])]
+    assert abs(car[2] - (-1.0)) < 0.1  # the whole car kept: centroid at its middle
+
+
+def test_normalisation_zero_mean_unit_rms_and_seeded():
+    rng = np.random.default_rng(2)
+    segs = segment_scan(_scene(rng))
+    p = segs.points.astype(np.float64)
+    assert np.allclose(p.mean(axis=1), 0, atol=1e-5)
+    assert np.allclose(np.sqrt((p**2).sum(2).mean(1)), 1.0, atol=1e-5)
+    again = segment_scan(_scene(np.random.default_rng(2)))
+    assert np.array_equal(segs.points, again.points)
+    other = segment_scan(_scene(np.random.default_rng(2)), params=SegmentParams(seed=5))
+    assert not np.array_equal(segs.points, other.points)
+
+
+def test_normalise_keeps_the_aspect_ratio():
+    pts = np.c_[np.linspace(-5, 5, 101), np.zeros(101), np.linspace(-1, 1, 101)]
+    out, scale = normalise(pts)
+    assert np.isclose(np.ptp(out[:, 0]) / np.ptp(out[:, 2]), 5.0)
+    assert np.isclose(scale, np.sqrt((pts**2).sum(1).mean()))
+
+
+def test_real_kitti_scans_segment_within_limits(kitti_dir):
+    files = sorted((kitti_dir / "samples" / "00" / "velodyne").glob("*.bin"))
+    if not files:
+        pytest.skip("no KITTI sample scans")
+    for f in files:
+        pts = np.fromfile(f, dtype=np.float32).reshape(-1, 4)[:, :3]
+        segs = segment_scan(pts)
+        # a real KITTI scan has tens of segments (cars, trunks, facades pieces)
+        assert 20 <= len(segs) <= 60
+        assert np.all(np.hypot(segs.centroids[:, 0], segs.centroids[:, 1]) <= 50)
+        members = np.concatenate(segs.members)
+        assert len(np.unique(members)) == len(members)
+        assert np.all(pts[members, 2] > -1.0)
