@@ -153,6 +153,11 @@ def score_protocol1(
         gt_pose = relative_ground_truth(lidar_poses, query, match)
         rre, rte = pose_errors(pose, gt_pose)
         metrics.update(summarize_pose_errors(rre, rte, is_true))
+        if is_reverse is not None:  # a 180-degree slip shows here, not in the median
+            for label, subset in (("same", ~is_reverse), ("reverse", is_reverse)):
+                part = summarize_pose_errors(rre, rte, is_true & subset)
+                metrics[f"rre_deg_median_{label}"] = part["rre_deg_median"]
+                metrics[f"rre_deg_p90_{label}"] = part["rre_deg_p90"]
     return Protocol1Result(matches, dist_m, is_revisit, is_true, is_reverse, curve, metrics,
                            recall_denominator, gt, pose, rre, rte)
 

@@ -29,6 +29,11 @@ from lidar_iris_eval.evaluation.protocol1 import (
     score_protocol1,
     stacked_descriptors,
 )
+from lidar_iris_eval.evaluation.streaming_pr import (
+    PR_COUNTING,
+    StreamedAffinity,
+    stream_protocol2,
+)
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET, Affinity, affinity_matrix
 from lidar_iris_eval.matching.retrieval import (
     PROTOCOL2_RULE,
@@ -51,25 +56,28 @@ class Protocol2Result:
     gt: GroundTruth
 
 
-def score_protocol2(affinity: Affinity, gt: GroundTruth, rule: str = ALL_PAIRS_RULE
-                    ) -> Protocol2Result:
+def score_protocol2(affinity: Affinity, gt: GroundTruth, rule: str = ALL_PAIRS_RULE,
+                    curve: PRCurve | None = None) -> Protocol2Result:
     """Score an affinity matrix against ground truth over ordered pairs.
 
     NaN distances (other than the diagonal) are never accepted, so such pairs
     count as rejected; the denominator is still every positive pair.
+    ``curve``, when given, is the exact curve already counted by the streamed
+    pass (:mod:`~lidar_iris_eval.evaluation.streaming_pr`); no matrix is needed.
     """
-    matrix = affinity.matrix
     n = gt.n_frames
-    if matrix.shape != (n, n):
-        raise LirisError("affinity", f"shape {matrix.shape} does not match {n} frames")
-    positive = gt.positive_matrix()
-    if affinity.symmetric:
-        mask = np.triu(np.ones((n, n), dtype=bool), 1)
-        weight = 2
-    else:
-        mask = ~np.eye(n, dtype=bool)
-        weight = 1
-    curve = pr_curve(matrix[mask], positive[mask], gt.n_positive_pairs, weight=weight)
+    if curve is None:
+        matrix = affinity.matrix
+        if matrix.shape != (n, n):
+            raise LirisError("affinity", f"shape {matrix.shape} does not match {n} frames")
+        positive = gt.positive_matrix()
+        if affinity.symmetric:
+            mask = np.triu(np.ones((n, n), dtype=bool), 1)
+            weight = 2
+        else:
+            mask = ~np.eye(n, dtype=bool)
+            weight = 1
+        curve = pr_curve(matrix[mask], positive[mask], gt.n_positive_pairs, weight=weight)
     metrics = summarize(curve)
     metrics.update(
         n_pairs=n * (n - 1),
@@ -77,6 +85,8 @@ def score_protocol2(affinity: Affinity, gt: GroundTruth, rule: str = ALL_PAIRS_R
         n_negatives=gt.n_negative_pairs,
         protocol2_rule=rule,
     )
+    if isinstance(affinity, StreamedAffinity):
+        metrics.update(affinity_stored=affinity.storage_note(), pr_counting=PR_COUNTING)
     return Protocol2Result(affinity, curve, metrics, gt)
 
 
@@ -86,6 +96,12 @@ def _affinity(descriptor, descriptors, candidates, pair_budget, progress) -> tup
         return two_stage_affinity(descriptor, descriptors, k, progress), PROTOCOL2_RULE
     affinity, _ = affinity_matrix(descriptor, descriptors, None, pair_budget, progress)
     return affinity, ALL_PAIRS_RULE
+
+
+def _streamed(descriptor, descriptors, gt, exclude, pair_budget, progress, storage):
+    """The all-pairs pass of a global descriptor, counted as it goes (O(N + positives))."""
+    return stream_protocol2(descriptor, descriptors, gt.pairs, gt.n_positive_pairs, exclude,
+                            pair_budget, progress, storage)
 
 
 def protocol2(
@@ -99,14 +115,22 @@ def protocol2(
     pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
     candidates: int | None = None,
+    affinity_storage: str = "auto",
 ) -> Protocol2Result:
     """Compute the affinity of stacked descriptors and score it (ground truth from positions).
 
     ``descriptors`` is the stacked array or a :class:`~lidar_iris_eval.extract.DescriptorDB`.
     ``candidates`` is K of a two-stage method (ignored for global descriptors).
+    ``affinity_storage`` (global descriptors): which affinity to keep, see
+    :data:`~lidar_iris_eval.evaluation.streaming_pr.AFFINITY_STORAGE`; the
+    metrics are exact whichever is kept.
     """
     descriptors = stacked_descriptors(descriptors, positions)
     gt = compute_ground_truth(positions, radius, 1, distance, frame)
+    if not descriptor.two_stage:
+        affinity, curve, _ = _streamed(descriptor, descriptors, gt, None, pair_budget, progress,
+                                       affinity_storage)
+        return score_protocol2(affinity, gt, ALL_PAIRS_RULE, curve)
     affinity, rule = _affinity(descriptor, descriptors, candidates, pair_budget, progress)
     return score_protocol2(affinity, gt, rule)
 
@@ -126,6 +150,7 @@ def protocols_1_and_2(
     progress: Callable[[int], object] | None = None,
     lidar_poses: np.ndarray | None = None,
     candidates: int | None = None,
+    affinity_storage: str = "auto",
 ) -> tuple[Protocol1Result, Protocol2Result]:
     """Both protocols from one affinity pass: each distance is computed once.
 
@@ -143,8 +168,9 @@ def protocols_1_and_2(
         matches = two_stage_matches(descriptor, descriptors, exclude, k, progress)
         affinity, rule = two_stage_affinity(descriptor, descriptors, k, None), PROTOCOL2_RULE
     else:
-        affinity, matches = affinity_matrix(descriptor, descriptors, exclude, pair_budget,
-                                            progress)
-        rule = ALL_PAIRS_RULE
+        affinity, curve, matches = _streamed(descriptor, descriptors, gt, exclude, pair_budget,
+                                             progress, affinity_storage)
+        p1 = score_protocol1(matches, positions, gt, recall_denominator, forward, lidar_poses)
+        return p1, score_protocol2(affinity, gt, ALL_PAIRS_RULE, curve)
     p1 = score_protocol1(matches, positions, gt, recall_denominator, forward, lidar_poses)
     return p1, score_protocol2(affinity, gt, rule)

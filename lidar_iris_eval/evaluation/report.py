@@ -195,8 +195,16 @@ def write_protocol1(run: RunWriter, descriptor: str, result: Protocol1Result) ->
 
 
 def write_protocol2(run: RunWriter, descriptor: str, result: Protocol2Result) -> None:
-    """``protocol2/<descriptor>/affinity.npy`` and ``pr.csv``."""
-    run.write_npy(f"protocol2/{descriptor}/affinity.npy", result.affinity.matrix)
+    """``protocol2/<descriptor>/affinity.npy`` (when kept) and ``pr.csv``.
+
+    A streamed pass may keep no matrix, or only a decimated one for figures
+    (``affinity_decimated.npy``); ``metrics.json`` says which (``affinity_stored``).
+    """
+    if result.affinity.matrix is not None:
+        run.write_npy(f"protocol2/{descriptor}/affinity.npy", result.affinity.matrix)
+    decimated = getattr(result.affinity, "decimated", None)
+    if decimated is not None:
+        run.write_npy(f"protocol2/{descriptor}/affinity_decimated.npy", decimated)
     run.write_csv(f"protocol2/{descriptor}/pr.csv", pr_table(result.curve))
 
 

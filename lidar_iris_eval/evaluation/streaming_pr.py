@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_iris_eval.evaluation.metrics import PRCurve
+from lidar_iris_eval.matching.blocks import Affinity
 
 #: queries per pairwise call when computing the positive distances first
 POSITIVE_QUERY_CHUNK = 64
@@ -177,14 +178,16 @@ def positive_predictions(pairs: np.ndarray, symmetric: bool) -> PositivePredicti
 
 
 def positive_values(descriptor, descriptors, positives: PositivePredictions,
-                    chunk: int = POSITIVE_QUERY_CHUNK) -> np.ndarray:
+                    chunk: int = POSITIVE_QUERY_CHUNK, count: bool = False):
     """float32 distances of the positive predictions, computed before the block pass.
 
     Queries are taken ``chunk`` distinct rows at a time against the union of
     their partners, so the cost is a small multiple of the positives' count.
-    The values are rounded to float32, as the affinity stores them.
+    The values are rounded to float32, as the affinity stores them. With
+    ``count`` the number of distances evaluated is returned as well.
     """
     out = np.empty(len(positives.row), dtype=np.float32)
+    evaluated = 0
     rows = np.unique(positives.row)
     for start in range(0, len(rows), chunk):
         qs = rows[start : start + chunk]
@@ -192,7 +195,197 @@ def positive_values(descriptor, descriptors, positives: PositivePredictions,
         cols = np.unique(positives.col[sel])
         dist, _ = descriptor.pairwise(descriptors[qs], descriptors[cols])
         dist = np.asarray(dist, dtype=np.float64)
+        evaluated += dist.size
         qi = np.searchsorted(qs, positives.row[sel])
         ci = np.searchsorted(cols, positives.col[sel])
         out[sel] = dist[qi, ci].astype(np.float32)
-    return out
+    return (out, evaluated) if count else out
+
+
+# ---------------------------------------------------------------- the streamed block pass
+
+#: how the affinity is kept: ``auto`` picks by size (below)
+AFFINITY_STORAGE = ("auto", "float32", "float16", "decimated", "none")
+#: ``auto`` keeps the full float32 matrix up to this many frames (64 MiB) ...
+AUTO_FLOAT32_MAX_FRAMES = 4096
+#: ... float16 up to this many (128 MiB), and a decimated float16 matrix beyond
+AUTO_FLOAT16_MAX_FRAMES = 8192
+#: side of the decimated matrix kept for figures (at most)
+DECIMATED_SIDE = 4096
+PR_COUNTING = ("exact, streamed: negatives counted between consecutive sorted positive "
+               "distances, block by block (no N x N array)")
+
+
+def resolve_storage(storage: str, n: int) -> str:
+    """The concrete storage of an ``n``-frame affinity for ``storage`` (``auto`` by size)."""
+    if storage not in AFFINITY_STORAGE:
+        from lidar_iris_eval.errors import LirisError
+
+        raise LirisError("affinity storage",
+                         f"unknown value {storage!r}; choose from {', '.join(AFFINITY_STORAGE)}")
+    if storage != "auto":
+        return storage
+    if n <= AUTO_FLOAT32_MAX_FRAMES:
+        return "float32"
+    return "float16" if n <= AUTO_FLOAT16_MAX_FRAMES else "decimated"
+
+
+@dataclass(frozen=True)
+class StreamedAffinity(Affinity):
+    """The affinity of a streamed pass: what was kept of it, and how.
+
+    Attributes (beyond :class:`~lidar_iris_eval.matching.blocks.Affinity`)
+    ----------------------------------------------------------------------
+    matrix : the full ``(N, N)`` affinity (float32 or float16, NaN diagonal),
+        or None when not kept.
+    decimated : every ``step``-th frame's rows and columns (float16), or None.
+    step : frame step of ``decimated`` (1 when the full matrix is kept).
+    storage : ``float32``, ``float16``, ``decimated`` or ``none``.
+    passes : block passes made (2 only if a positive's batched distance
+        differed from the one computed first).
+    """
+
+    decimated: np.ndarray | None = None
+    step: int = 1
+    storage: str = "float32"
+    passes: int = 1
+
+    def storage_note(self) -> str:
+        """For metrics.json: which affinity was written, and why not the full one."""
+        if self.storage in ("float32", "float16"):
+            return f"full {self.storage}"
+        if self.storage == "decimated":
+            side = 0 if self.decimated is None else len(self.decimated)
+            return (f"decimated float16 for figures: every {self.step}th frame "
+                    f"({side} x {side}); metrics use every pair")
+        return "not stored; metrics use every pair"
+
+
+class _Sink:
+    """Receives each block of the pass: checks and masks positives, counts negatives, stores."""
+
+    def __init__(self, acc: StreamingPR, positives: PositivePredictions, expected: np.ndarray,
+                 symmetric: bool, n: int, storage: str):
+        self.acc, self.pp, self.expected = acc, positives, expected
+        self.symmetric, self.n, self.storage = symmetric, n, storage
+        self.gathered = np.empty_like(expected)
+        self.mismatch = False
+        self.matrix = None
+        self.decimated = None
+        self.step = 1
+        if storage in ("float32", "float16"):
+            self.matrix = np.empty((n, n), dtype=storage)
+        elif storage == "decimated":
+            self.step = max(1, -(-n // DECIMATED_SIDE))
+            side = -(-n // self.step)
+            self.decimated = np.full((side, side), np.nan, dtype=np.float16)
+
+    def __call__(self, a: int, b: int, d: np.ndarray) -> None:
+        d32 = np.asarray(d).astype(np.float32)
+        self._store(a, b, d32)
+        sel = self.pp.in_rows(a, b)
+        rows, cols = self.pp.row[sel] - a, self.pp.col[sel]
+        got = d32[rows, cols]
+        self.gathered[sel] = got
+        want = self.expected[sel]
+        if not np.array_equal(got, want, equal_nan=True):
+            self.mismatch = True
+        d32[rows, cols] = np.nan
+        if self.symmetric:  # only the strict lower triangle: column < row
+            diag = d32[:, a:b]
+            diag[np.triu_indices(b - a)] = np.nan
+        else:
+            d32[np.arange(b - a), np.arange(a, b)] = np.nan
+        self.acc.add_negatives(d32)
+
+    def _store(self, a: int, b: int, d32: np.ndarray) -> None:
+        if self.matrix is not None:
+            if self.symmetric:
+                from lidar_iris_eval.matching.blocks import _fill_symmetric
+
+                _fill_symmetric(self.matrix, d32, a, b)
+            else:
+                self.matrix[a:b] = d32
+        elif self.decimated is not None:
+            k = self.step
+            first = -(-a // k) * k
+            rows = np.arange(first, b, k)
+            if len(rows) == 0:
+                return
+            cols = np.arange(0, d32.shape[1], k)
+            if self.symmetric:
+                cols = cols[cols < first] if len(cols) else cols
+                block = d32[np.ix_(rows - a, cols)].astype(np.float16)
+                self.decimated[np.ix_(rows // k, cols // k)] = block
+                self.decimated[np.ix_(cols // k, rows // k)] = block.T
+                # pairs inside the row group (both in rows): read from the lower triangle
+                for i, r in enumerate(rows):
+                    for c in rows[:i]:
+                        v = np.float16(d32[r - a, c])
+                        self.decimated[r // k, c // k] = v
+                        self.decimated[c // k, r // k] = v
+            else:
+                self.decimated[np.ix_(rows // k, cols // k)] = d32[np.ix_(rows - a, cols)]
+
+    def finish(self) -> None:
+        if self.matrix is not None:
+            np.fill_diagonal(self.matrix, np.nan)
+        if self.decimated is not None:
+            np.fill_diagonal(self.decimated, np.nan)
+
+
+def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pairs: int,
+                     exclude: int | None = None, pair_budget: int | None = None,
+                     progress=None, storage: str = "auto"):
+    """Protocol 2's exact curve (and protocol 1's matches) from one block pass.
+
+    Parameters
+    ----------
+    descriptor, descriptors : the method and its stacked descriptors.
+    pairs : ``(K, 2)`` unordered positive pairs ``i < j`` (``GroundTruth.pairs``).
+    n_positive_pairs : the recall denominator (ordered positive pairs).
+    exclude : protocol 1's E, to take its best matches from the same pass.
+    storage : which affinity to keep (:data:`AFFINITY_STORAGE`).
+
+    Memory is O(N + positives) plus one block of distances and the kept
+    affinity (none, decimated or full, per ``storage``).
+
+    Returns
+    -------
+    (StreamedAffinity, PRCurve, BestMatches or None)
+    """
+    import time
+
+    from lidar_iris_eval.errors import warn
+    from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET, affinity_matrix
+
+    budget = DEFAULT_PAIR_BUDGET if pair_budget is None else pair_budget
+    n = len(descriptors)
+    symmetric = bool(descriptor.symmetric)
+    pp = positive_predictions(pairs, symmetric)
+    if n >= 2:  # load compiled kernels before the clock (compilation is not matching cost)
+        descriptor.pairwise(descriptors[:1], descriptors[:2])
+    start = time.perf_counter()
+    expected, pre_evaluations = positive_values(descriptor, descriptors, pp, count=True)
+    pre_s = time.perf_counter() - start
+    kind = resolve_storage(storage, n)
+    sink = _Sink(StreamingPR(expected, pp.weight), pp, expected, symmetric, n, kind)
+    affinity, matches = affinity_matrix(descriptor, descriptors, exclude, budget, progress,
+                                        sink=sink, store=False)
+    sink.finish()
+    seconds, evaluations = affinity.seconds + pre_s, affinity.n_evaluations + pre_evaluations
+    passes, acc = 1, sink.acc
+    if sink.mismatch:  # batched numbers depend on the batch: redo with the pass's own values
+        warn(f"{descriptor.name} protocol 2",
+             "pairwise distances of the positive pairs differ between batch shapes; "
+             "counting the negatives again against the block values (a second pass)")
+        gathered = sink.gathered.copy()
+        second = _Sink(StreamingPR(gathered, pp.weight), pp, gathered, symmetric, n, "none")
+        again, _ = affinity_matrix(descriptor, descriptors, None, budget, None,
+                                   sink=second, store=False)
+        seconds, evaluations, passes, acc = (seconds + again.seconds,
+                                             evaluations + again.n_evaluations, 2, second.acc)
+    affinity = StreamedAffinity(
+        matrix=sink.matrix, seconds=seconds, n_evaluations=evaluations, symmetric=symmetric,
+        decimated=sink.decimated, step=sink.step, storage=kind, passes=passes)
+    return affinity, acc.curve(n_positive_pairs), matches

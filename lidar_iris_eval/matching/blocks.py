@@ -166,6 +166,8 @@ def affinity_matrix(
     exclude: int | None = None,
     pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
+    sink: Callable[[int, int, np.ndarray], object] | None = None,
+    store: bool = True,
 ) -> tuple[Affinity, BestMatches | None]:
     """The ``(N, N)`` float32 affinity and, when ``exclude`` is given, protocol 1 matches.
 
@@ -173,17 +175,24 @@ def affinity_matrix(
     of rows ``[a, b)`` against columns ``[0, b)``) and mirrored, so each
     unordered pair is computed once apart from the small diagonal blocks.
     Otherwise every row is computed against every column.
+
+    ``sink(a, b, d)``, if given, receives every float64 block (rows ``[a, b)``,
+    columns ``[0, width)``), e.g. the streaming PR counter of
+    :mod:`~lidar_iris_eval.evaluation.streaming_pr`; its time is not counted as
+    matching time. ``store=False`` keeps no matrix (``Affinity.matrix`` is None),
+    so memory stays O(N) plus one block.
     """
     if exclude is not None:
         _check_exclude(exclude)
     n = len(descriptors)
     symmetric = bool(descriptor.symmetric)
-    matrix = np.empty((n, n), dtype=np.float32)
+    matrix = np.empty((n, n), dtype=np.float32) if store else None
     first_query = min(exclude, n) if exclude is not None else n
     p1_match = np.empty(n - first_query, dtype=np.int64)
     p1_dist = np.empty(n - first_query)
     p1_yaw = np.empty(n - first_query)
     evaluations = 0
+    sink_s = 0.0
     # a symmetric pass holds at most b columns per row; size blocks for the worst case
     rows_per_block = block_rows(n, pair_budget)
     start = time.perf_counter()
@@ -191,10 +200,14 @@ def affinity_matrix(
         width = b if symmetric else n
         d, y = _pairwise(descriptor, descriptors[a:b], descriptors[:width])
         evaluations += d.size
-        if symmetric:
+        if matrix is not None and symmetric:
             _fill_symmetric(matrix, d, a, b)
-        else:
+        elif matrix is not None:
             matrix[a:b] = d
+        if sink is not None:
+            sink_start = time.perf_counter()
+            sink(a, b, d)
+            sink_s += time.perf_counter() - sink_start
         if exclude is not None and b > first_query:
             lo = max(a, first_query)
             rows = slice(lo - a, b - a)
@@ -204,8 +217,9 @@ def affinity_matrix(
             )
         if progress is not None:
             progress(b - a)
-    np.fill_diagonal(matrix, np.nan)
-    seconds = time.perf_counter() - start
+    if matrix is not None:
+        np.fill_diagonal(matrix, np.nan)
+    seconds = time.perf_counter() - start - sink_s
     affinity = Affinity(matrix, seconds, evaluations, symmetric)
     if exclude is None:
         return affinity, None
