@@ -67,6 +67,8 @@ def build_bench_descriptors(text: str, preset: str | None):
               help="Protocol 1 exclusion window E (frames).")
 @click.option("--radius", type=float, default=4.0, show_default=True,
               help="Ground-truth radius (metres) for the protocols' metrics.")
+@click.option("--protocol", "protocol_list", type=click.Choice(["1", "2"]), multiple=True,
+              help="Time only these protocols (repeatable) [default: both].")
 @click.option("--skip-protocol1", is_flag=True, help="Do not time protocol 1.")
 @click.option("--skip-protocol2", is_flag=True, help="Do not time protocol 2.")
 @click.option("--loop-pairs", type=int, default=1000, show_default=True,
@@ -89,7 +91,7 @@ def build_bench_descriptors(text: str, preset: str | None):
                    "full-resolution HDL-64E scans].")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or status lines.")
 def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence, work_dir,
-            json_path, exclude, radius, skip_protocol1, skip_protocol2, loop_pairs,
+            json_path, exclude, radius, protocol_list, skip_protocol1, skip_protocol2, loop_pairs,
             kernel_queries, workers, block_pairs, in_process, cpp_scans, scans_dir, quiet):
     """Time extraction, the batched kernels and protocols 1/2 of each descriptor.
 
@@ -99,7 +101,8 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
     from lidar_iris_eval.cache import default_cache_dir
     from lidar_iris_eval.io import open_sequence
 
-    protocols = tuple(p for p, skip in ((1, skip_protocol1), (2, skip_protocol2)) if not skip)
+    protocols = tuple(p for p, skip in ((1, skip_protocol1), (2, skip_protocol2))
+                      if not skip and (not protocol_list or str(p) in protocol_list))
     settings = BenchSettings(exclude=exclude, radius=radius, protocols=protocols,
                              loop_pairs=loop_pairs, kernel_queries=kernel_queries,
                              workers=workers, isolate=not in_process, pair_budget=block_pairs)
