@@ -13,7 +13,7 @@ fi
 mkdir -p "$out"
 
 echo "== 1/5 simulate the built-in sequence small-mixed (400 HDL-64 scans, known loops)"
-liris simulate "$out/sequence" --preset small-mixed --overwrite
+liris simulate "$out/sequence" --world small-mixed --overwrite
 
 echo "== 2/5 ground truth from the poses alone"
 liris gt "$out/sequence"

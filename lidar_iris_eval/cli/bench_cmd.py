@@ -18,6 +18,7 @@ from lidar_iris_eval.bench import (
     summary_rows,
 )
 from lidar_iris_eval.bench.extraction import cpp_rows, load_bin_scans, measure_against_cpp
+from lidar_iris_eval.cli.options import deprecated_alias
 from lidar_iris_eval.cli.output import (
     check_output_file,
     echo_table,
@@ -52,8 +53,9 @@ def build_bench_descriptors(text: str, preset: str | None):
 @click.option("--preset", default=None,
               help="Descriptor preset for all descriptors (default: each one's first; "
                    "scan-context: exhaustive).")
-@click.option("--sim-preset", default="kitti-scale", show_default=True,
-              help="Simulator preset of the sequence.")
+@click.option("--world", "sim_preset", default="kitti-scale", show_default=True,
+              help="Simulated world (a liris simulate --world preset) of the sequence.")
+@deprecated_alias("--sim-preset", "--world", "sim_preset")
 @click.option("--azimuth-steps", type=int, default=None,
               help="Simulated azimuth steps per revolution (default: the sim preset's).")
 @click.option("--sequence", type=click.Path(path_type=Path), default=None,
@@ -61,8 +63,9 @@ def build_bench_descriptors(text: str, preset: str | None):
 @click.option("--work-dir", type=click.Path(path_type=Path), default=None,
               help="Simulated sequence and descriptor cache [default: <liris cache dir>/bench]; "
                    "reruns reuse both.")
-@click.option("--json", "json_path", default=None,
+@click.option("--json-out", "json_path", default=None,
               help="Write the report as JSON to FILE ('-' for stdout).")
+@deprecated_alias("--json", "--json-out", "json_path")
 @click.option("--exclude", type=int, default=30, show_default=True,
               help="Protocol 1 exclusion window E (frames).")
 @click.option("--radius", type=float, default=4.0, show_default=True,
@@ -108,7 +111,7 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
                              workers=workers, isolate=not in_process, pair_budget=block_pairs)
     descriptors = build_bench_descriptors(descriptor_text, preset)
     if json_path is not None and json_path != "-":
-        check_output_file(json_path, "--json")  # before the benchmark, not after it
+        check_output_file(json_path, "--json-out")  # before the benchmark, not after it
     work_dir = work_dir if work_dir is not None else default_cache_dir() / "bench"
 
     def log(message: str) -> None:

@@ -128,3 +128,30 @@ def ground_truth_options(func):
 def current_convention():
     """The convention resolved by :func:`ground_truth_options` for the running command."""
     return click.get_current_context().meta.get(CONVENTION_KEY)
+
+
+def deprecated_alias(old: str, new: str, dest: str, **option_kwargs):
+    """Keep an old option spelling working for one release, with a warning.
+
+    Adds a hidden option ``old`` whose value, when given, is passed to the
+    command as ``dest`` (the parameter of the new spelling ``new``). Apply it
+    next to the new option's decorator.
+    """
+    hidden = f"deprecated_{dest}"
+
+    def decorator(func):
+        @click.option(old, hidden, default=None, hidden=True, expose_value=True,
+                      **option_kwargs)
+        @functools.wraps(func)
+        def wrapper(*args, **kwargs):
+            value = kwargs.pop(hidden)
+            if value is not None:
+                from lidar_iris_eval.errors import warn
+
+                warn(old, f"deprecated; use {new} (the old spelling goes in the next release)")
+                kwargs[dest] = value
+            return func(*args, **kwargs)
+
+        return wrapper
+
+    return decorator

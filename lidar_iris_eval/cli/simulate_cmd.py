@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from lidar_iris_eval.cli.options import deprecated_alias
 from lidar_iris_eval.simulate.presets import PRESETS, resolve_config
 from lidar_iris_eval.simulate.sensors import SENSORS
 from lidar_iris_eval.simulate.trajectories import ROUTES
@@ -13,8 +14,9 @@ from lidar_iris_eval.simulate.trajectories import ROUTES
 
 @click.command("simulate")
 @click.argument("out_dir", type=click.Path(path_type=Path))
-@click.option("--preset", type=click.Choice(sorted(PRESETS)), default="tiny-mixed",
+@click.option("--world", "preset", type=click.Choice(sorted(PRESETS)), default="tiny-mixed",
               show_default=True, help="Built-in sequence; the options below override it.")
+@deprecated_alias("--preset", "--world", "preset", type=click.Choice(sorted(PRESETS)))
 @click.option("--frames", type=int, help="Number of scans (default: the preset's; with "
               "--trajectory, every pose of the file).")
 @click.option("--sensor", type=click.Choice(sorted(SENSORS)), help="LiDAR model.")
