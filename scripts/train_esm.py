@@ -44,19 +44,17 @@ def world_config(seed: int, sensor: str, az: int, frames: int) -> dict:
                 block_size=(30.0, 38.0), n_moving_cars=2)
 
 
-def stage_data(work: Path) -> tuple[SegmentSet, SegmentSet]:
-    paths = work / "train_segments.npz", work / "valid_segments.npz"
-    if all(p.exists() for p in paths):
-        return SegmentSet.load(paths[0]), SegmentSet.load(paths[1])
-    sets = []
-    for worlds, path in zip((TRAIN_WORLDS, VALID_WORLDS), paths, strict=True):
-        parts = [simulate_segments(world_config(*w), world_index=k) for k, w in enumerate(worlds)]
-        data = SegmentSet.concat(parts)
-        data.save(path)
-        sets.append(data)
-        print(f"{path.name}: {len(data)} segments, {len(true_pairs(data))} true pairs",
-              flush=True)
-    return sets[0], sets[1]
+def stage_data(work: Path, which: str) -> SegmentSet:
+    """The training or validation segments (simulated once, then read from ``work``)."""
+    worlds = TRAIN_WORLDS if which == "train" else VALID_WORLDS
+    path = work / f"{which}_segments.npz"
+    if path.exists():
+        return SegmentSet.load(path)
+    parts = [simulate_segments(world_config(*w), world_index=k) for k, w in enumerate(worlds)]
+    data = SegmentSet.concat(parts)
+    data.save(path)
+    print(f"{path.name}: {len(data)} segments, {len(true_pairs(data))} true pairs", flush=True)
+    return data
 
 
 def main() -> None:
@@ -74,12 +72,14 @@ def main() -> None:
     args.work.mkdir(parents=True, exist_ok=True)
     stages = set(args.stages.split(","))
     start = time.time()
-    train, valid = stage_data(args.work)
+    train = stage_data(args.work, "train")
+    if "data" in stages:
+        stage_data(args.work, "valid")
     if stages == {"data"}:
         return
     from lidar_iris_eval.descriptors.esm import training
 
-    training.run(train, valid, args, stages, start)
+    training.run(train, lambda: stage_data(args.work, "valid"), args, stages, start)
     print(json.dumps({"minutes": round((time.time() - start) / 60, 1)}))
 
 

@@ -22,6 +22,7 @@ _REGISTRY: dict[str, str] = {
     "m2dp": "lidar_iris_eval.descriptors.m2dp:M2DP",
     "esf": "lidar_iris_eval.descriptors.esf:ESF",
     "gosmatch": "lidar_iris_eval.descriptors.gosmatch:GOSMatch",
+    "esm": "lidar_iris_eval.descriptors.esm:ESM",
 }
 
 

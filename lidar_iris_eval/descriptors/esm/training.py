@@ -107,7 +107,8 @@ def knn_labels(emb: np.ndarray, data: SegmentSet, rows: np.ndarray, pairs: np.nd
                      for i in range(len(rows))], dtype=np.int64)
 
 
-def run(train: SegmentSet, valid: SegmentSet, args, stages: set, start: float) -> None:
+def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
+    """Train, fit the quality branch and export; ``valid_set()`` gives the held-out segments."""
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -174,6 +175,7 @@ def run(train: SegmentSet, valid: SegmentSet, args, stages: set, start: float) -
         np.savez(tmp, **weights)
         tmp.replace(out)
         w, arch = network.load_weights(out)
+        valid = valid_set()
         vpairs = true_pairs(valid)
         rows = np.arange(len(valid))
         if len(rows) > 3000:

@@ -1,0 +1,272 @@
+"""ESM (Tinchev, Penate-Sanchez and Fallon, RA-L 2019): learned segment descriptors.
+
+A two-stage method (``descriptors/base.py``):
+
+* **describe**: segments (:mod:`.segmentation`), each embedded in 16-d by the
+  shipped network (:mod:`.network`, NumPy only) with a quality in [0, 1];
+  the feature set is ``{"embedding": (S, 16), "quality": (S,), "centroids": (S, 3)}``;
+* **retrieve**: each query segment takes its ``knn = 25`` nearest segments
+  (squared L2) among the allowed frames; each neighbour votes for its frame
+  with weight ``q_query * q_neighbour``; frames are ranked by their vote sum,
+  and the retrieval distance is ``1 / (1 + votes)``;
+* **verify**: the correspondences of a candidate frame are the (query segment,
+  candidate segment) pairs of that k-NN, at most ``per_segment`` per query
+  segment (its nearest ones in that frame); PROSAC
+  (``matching.geometry.prosac_rigid``) on their centroids, sampled in
+  decreasing ``q_query * q_candidate`` order, fits a rigid 6-DoF pose
+  (candidate LiDAR frame -> query LiDAR frame) with inlier threshold
+  ``inlier_threshold`` metres. The k-NN is the retrieval step's (frames
+  allowed for the query); when :meth:`verify` is called alone, it is taken
+  over the frames up to the latest candidate (the query's own excluded);
+* **score** ("inverse inliers"): ``1 / (1 + n_inliers) + 1e-3 * mean inlier
+  residual (m)``, smaller is better; ``inf`` when fewer than ``min_inliers``
+  pairs agree.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from lidar_iris_eval.descriptors.base import Descriptor, Verification
+from lidar_iris_eval.descriptors.esm import network
+from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams, segment_scan
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.matching.geometry import prosac_rigid
+
+_GROUND = ("auto", "labels", "height")
+
+
+@dataclass(frozen=True)
+class ESMParams:
+    """ESM settings (segmentation: SegMap defaults; matching: see the module docstring)."""
+
+    max_range: float = 50.0
+    ground: str = "auto"  # labels when the scan has them, else the height rule
+    ground_z: float = -1.0
+    voxel: float = 0.1
+    radius: float = 0.2
+    min_points: int = 100
+    max_points: int = 15000
+    seed: int = 0
+    knn: int = 25
+    per_segment: int = 3
+    inlier_threshold: float = 0.6
+    min_inliers: int = 3
+    iterations: int = 1000
+    num_candidates: int = 10
+    weights: str = ""  # "" = the weights shipped in the package
+
+    def __post_init__(self) -> None:
+        if self.ground not in _GROUND:
+            raise LirisError("esm.ground", f"must be one of {', '.join(_GROUND)}, "
+                                           f"got {self.ground!r}")
+        for name in ("knn", "per_segment", "min_inliers", "iterations", "num_candidates"):
+            if int(getattr(self, name)) < 1:
+                raise LirisError(f"esm.{name}", "must be at least 1")
+        if self.min_inliers < 3:
+            raise LirisError("esm.min_inliers", "a rigid fit needs at least 3 pairs")
+
+
+@dataclass
+class ESMDatabase:
+    """All segments of a sequence, frame by frame (segments of frame i: offsets[i]:offsets[i+1])."""
+
+    embedding: np.ndarray
+    quality: np.ndarray
+    centroids: np.ndarray
+    offsets: np.ndarray
+    frame_of: np.ndarray
+    sq: np.ndarray = field(init=False)
+    cache: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.sq = (self.embedding.astype(np.float64) ** 2).sum(1)
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def rows(self, i: int) -> slice:
+        return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
+
+
+class ESM(Descriptor):
+    """ESM: segment, embed (16-d, NumPy), vote, verify with PROSAC."""
+
+    name: ClassVar[str] = "esm"
+    params_type: ClassVar[type] = ESMParams
+    symmetric: ClassVar[bool] = False
+    takes_scan: ClassVar[bool] = True
+    two_stage: ClassVar[bool] = True
+
+    def __init__(self, params: Any = None, preset: str = "custom"):
+        super().__init__(params, preset)
+        self._weights = None
+        self.timing = {"segmentation": 0.0, "description": 0.0, "scans": 0}
+
+    # ------------------------------------------------------------------ describe
+
+    @property
+    def segment_params(self) -> SegmentParams:
+        p = self.params
+        return SegmentParams(p.max_range, p.ground_z, p.voxel, p.radius, p.min_points,
+                             p.max_points, 256, p.seed)
+
+    def weights(self) -> tuple[dict, network.Arch]:
+        if self._weights is None:
+            path = self.params.weights or network.WEIGHTS_FILE
+            try:
+                self._weights = network.load_weights(path)
+            except OSError as err:
+                raise LirisError(path, f"cannot read ESM weights ({err})") from None
+        return self._weights
+
+    def describe(self, scan: Any) -> dict[str, np.ndarray]:
+        return self.compute(scan)
+
+    def compute(self, scan: Any) -> dict[str, np.ndarray]:  # type: ignore[override]
+        """Feature set of one scan (a Scan, or bare (N, 3+) points)."""
+        points = getattr(scan, "points", scan)
+        labels = getattr(scan, "labels", None)
+        if self.params.ground == "height":
+            labels = None
+        elif self.params.ground == "labels" and labels is None:
+            raise LirisError("esm.ground", "is 'labels' but the scan has no labels")
+        t0 = time.perf_counter()
+        segs = segment_scan(np.asarray(points)[:, :3], labels, self.segment_params)
+        t1 = time.perf_counter()
+        w, arch = self.weights()
+        emb = network.embed(w, arch, segs.points)
+        q = network.quality(w, emb) if len(emb) else np.zeros(0)
+        t2 = time.perf_counter()
+        self.timing["segmentation"] += t1 - t0
+        self.timing["description"] += t2 - t1
+        self.timing["scans"] += 1
+        return {"embedding": emb.astype(np.float32), "quality": q.astype(np.float64),
+                "centroids": segs.centroids.astype(np.float64)}
+
+    # ------------------------------------------------------------------ stage 1
+
+    def prepare(self, features: Any) -> ESMDatabase:
+        n = len(features)
+        frames = [features[i] for i in range(n)]
+        sizes = np.array([len(f["quality"]) for f in frames], dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+        def flat(key, dtype, width):
+            parts = [np.asarray(f[key], dtype=dtype).reshape(-1, width) for f in frames]
+            return np.concatenate(parts) if parts else np.zeros((0, width), dtype)
+
+        return ESMDatabase(
+            embedding=flat("embedding", np.float32, 16),
+            quality=flat("quality", np.float64, 1)[:, 0],
+            centroids=flat("centroids", np.float64, 3), offsets=offsets,
+            frame_of=np.repeat(np.arange(n), sizes),
+        )
+
+    def segment_knn(self, db: ESMDatabase, query: int, n_allowed: int):
+        """Each query segment's ``knn`` nearest segments in frames ``[0, n_allowed)``."""
+        key = (query, n_allowed)
+        if key in db.cache:
+            return db.cache[key]
+        q = db.rows(query)
+        m = int(db.offsets[min(n_allowed, len(db))])
+        eq = db.embedding[q].astype(np.float64)
+        if m == 0 or len(eq) == 0:
+            out = (np.zeros((len(eq), 0), np.int64), np.zeros((len(eq), 0)))
+        else:
+            d2 = db.sq[q][:, None] + db.sq[None, :m] - 2.0 * eq @ db.embedding[:m].T
+            d2[:, q.start:min(q.stop, m)] = np.inf  # never the query's own segments
+            k = min(self.params.knn, m)
+            nn = np.argpartition(d2, k - 1, axis=1)[:, :k]
+            dd = np.take_along_axis(d2, nn, axis=1)
+            order = np.argsort(dd, axis=1, kind="stable")
+            dd = np.maximum(np.take_along_axis(dd, order, 1), 0.0)
+            out = (np.take_along_axis(nn, order, 1), dd)
+        db.cache.clear()
+        db.cache[key] = out
+        return out
+
+    def retrieve(self, db: ESMDatabase, query: int, n_allowed: int, k: int):
+        """Frames ranked by quality-weighted votes of the segments' k-NN."""
+        nn, _ = self.segment_knn(db, query, n_allowed)
+        if nn.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0)
+        qq = db.quality[db.rows(query)]
+        weight = (qq[:, None] * db.quality[nn]).ravel()
+        votes = np.bincount(db.frame_of[nn.ravel()], weights=weight, minlength=n_allowed)
+        voted = np.nonzero(votes > 0)[0]
+        best = voted[np.lexsort((voted, -votes[voted]))][:k]
+        return best.astype(np.int64), 1.0 / (1.0 + votes[best])
+
+    # ------------------------------------------------------------------ stage 2
+
+    def correspondences(self, db: ESMDatabase, query: int, cand: int, n_allowed: int):
+        """(query rows, candidate rows, quality products) of one candidate frame."""
+        nn, dd = self.segment_knn(db, query, n_allowed)
+        qrows = np.arange(db.offsets[query], db.offsets[query + 1])
+        in_frame = db.frame_of[nn] == cand if nn.size else np.zeros(nn.shape, bool)
+        # per query segment, its nearest ``per_segment`` neighbours inside the frame
+        rank = np.cumsum(in_frame, axis=1)
+        keep = in_frame & (rank <= self.params.per_segment)
+        a, col = np.nonzero(keep)
+        b = nn[a, col]
+        qa = qrows[a]
+        return qa, b, db.quality[qa] * db.quality[b]
+
+    def verify(self, db: ESMDatabase, query: int, candidates: np.ndarray) -> Verification:
+        candidates = np.asarray(candidates, dtype=np.int64).reshape(-1)
+        p = self.params
+        k = len(candidates)
+        score = np.full(k, np.inf)
+        pose = np.tile(np.full((4, 4), np.nan), (k, 1, 1))
+        inliers = np.zeros(k, np.int64)
+        # the k-NN of the retrieval step, or (verify alone) over frames up to the last candidate
+        cached = [key for key in db.cache if key[0] == query]
+        n_allowed = cached[0][1] if cached else (int(candidates.max()) + 1 if k else 0)
+        for c, cand in enumerate(candidates):
+            qa, b, prod = self.correspondences(db, query, int(cand), n_allowed)
+            if len(qa) < p.min_inliers:
+                continue
+            order = np.lexsort((np.arange(len(prod)), -prod))
+            rng = np.random.default_rng([p.seed, int(query), int(cand)])
+            res = prosac_rigid(db.centroids[b], db.centroids[qa], order,
+                               threshold=p.inlier_threshold, iterations=p.iterations,
+                               min_inliers=p.min_inliers, rng=rng)
+            n_in = int(res.n_inliers)
+            inliers[c] = n_in
+            if res.success and n_in >= p.min_inliers:
+                resid = float(np.mean(res.residuals[res.inliers]))
+                score[c] = 1.0 / (1.0 + n_in) + 1e-3 * resid
+                pose[c] = res.pose
+        return Verification(score=score, pose=pose, inliers=inliers)
+
+    def retrieval_pairwise(self, db: ESMDatabase, rows: np.ndarray, cols) -> np.ndarray:
+        """Retrieval distance ``1 / (1 + votes)`` of frames ``rows`` against frames ``cols``.
+
+        Votes here count each query segment's k-NN over *all* frames of ``cols``.
+        """
+        cols = np.arange(len(db))[cols] if isinstance(cols, slice) else np.asarray(cols)
+        out = np.ones((len(rows), len(cols)))
+        col_rows = np.concatenate([np.arange(db.offsets[c], db.offsets[c + 1]) for c in cols]) \
+            if len(cols) else np.zeros(0, np.int64)
+        if len(col_rows) == 0:
+            return out
+        pos = -np.ones(len(db), np.int64)
+        pos[cols] = np.arange(len(cols))
+        e = db.embedding[col_rows].astype(np.float64)
+        for r, i in enumerate(rows):
+            q = db.rows(int(i))
+            if q.stop == q.start:
+                continue
+            d2 = db.sq[q][:, None] + db.sq[col_rows][None, :] - 2.0 * db.embedding[q] @ e.T
+            k = min(self.params.knn, len(col_rows))
+            nn = np.argpartition(d2, k - 1, axis=1)[:, :k]
+            w = (db.quality[q][:, None] * db.quality[col_rows[nn]]).ravel()
+            votes = np.bincount(pos[db.frame_of[col_rows[nn.ravel()]]], weights=w,
+                                minlength=len(cols))
+            out[r] = 1.0 / (1.0 + votes)
+        return out
