@@ -268,7 +268,17 @@ def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
 
 
 def _compute_chunks(seq, descriptor, todo, workers, bar) -> Iterable:
-    """Yield ``((a, b), arrays)`` for each range in ``todo`` (any order with a pool)."""
+    """Yield ``((a, b), arrays)`` for each range in ``todo`` (any order with a pool).
+
+    With a Dask engine active (``--scheduler``), the chunks are cluster tasks.
+    """
+    from lidar_iris_eval import engine as engines
+
+    if engines.current() is not None and todo:
+        from lidar_iris_eval.engine.tasks import compute_chunks
+
+        yield from compute_chunks(engines.current(), seq, descriptor, todo, bar)
+        return
     if workers == 1 or len(todo) <= 1:
         for a, b in todo:
             yield (a, b), _raise_errors(_compute_range(seq, descriptor, a, b, bar.update))

@@ -21,6 +21,7 @@ from lidar_iris_eval.cli.workflow import (
     table_format,
     workflow_options,
 )
+from lidar_iris_eval.engine import check_scheduler, use_scheduler
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.evaluation.evaluate import (
     Settings,
@@ -65,9 +66,12 @@ register_flags({
 @click.option("--block-pairs", type=int, default=DEFAULT_PAIR_BUDGET, show_default=True,
               help="Distances computed per block (bounds memory).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json instead of a table.")
+@click.option("--scheduler", default="processes", show_default=True,
+              help="processes (a local pool of --workers), local (a Dask LocalCluster of "
+                   "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
 def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
-            export_path, out, overwrite, block_pairs, as_json, reader_options):
+            export_path, out, overwrite, block_pairs, as_json, reader_options, scheduler):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
@@ -98,10 +102,12 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     check_run_dir(out, overwrite)
 
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
-    run = evaluate(seq, descriptors, protocols, settings, cache=cache, workers=workers,
-                   progress=not quiet, convention=conv,
-                   dbs=extract_all(seq, descriptors, cache, workers, quiet))
-    extra = config_extra(conv)
+    with use_scheduler(check_scheduler(scheduler), workers) as engine:
+        run = evaluate(seq, descriptors, protocols, settings, cache=cache, workers=workers,
+                       progress=not quiet, convention=conv,
+                       dbs=extract_all(seq, descriptors, cache, workers, quiet))
+        engine_info = engine.describe() if engine is not None else {"scheduler": scheduler}
+    extra = {**config_extra(conv), "engine": engine_info}
     write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options, **extra)
     exported = export_loops(run, export_path) if export_path is not None else {}
     if as_json:

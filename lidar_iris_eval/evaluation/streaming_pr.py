@@ -103,6 +103,17 @@ class StreamingPR:
         elif low == self.neg_min:
             self.neg_min_count += int(np.count_nonzero(d == low))
 
+    def fresh(self) -> StreamingPR:
+        """An empty accumulator for the same positives (no re-sorting), e.g. per task."""
+        out = object.__new__(StreamingPR)
+        out.weight, out.levels, out.pos_at_most, out.n_pos = (
+            self.weight, self.levels, self.pos_at_most, self.n_pos)
+        out.bucket = np.zeros_like(self.bucket)
+        out.tied = np.zeros_like(self.tied)
+        out.gap_max = np.full_like(self.gap_max, -np.inf)
+        out.neg_min, out.neg_min_count = np.inf, 0
+        return out
+
     def merge(self, other: StreamingPR) -> None:
         """Add another accumulator's negatives (same positives), e.g. from another worker."""
         if not np.array_equal(self.levels, other.levels) or self.weight != other.weight:
@@ -261,6 +272,30 @@ class StreamedAffinity(Affinity):
         return "not stored; metrics use every pair"
 
 
+def count_block(acc: StreamingPR, pp: PositivePredictions, expected: np.ndarray,
+                symmetric: bool, a: int, b: int, d32: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Count the negatives of one float32 block (rows ``[a, b)``) into ``acc``.
+
+    The positives of the block are read out (and compared with ``expected``,
+    their values computed beforehand), then masked together with the pairs the
+    pass does not score (the diagonal; for a symmetric descriptor everything
+    but the strict lower triangle). ``d32`` is overwritten. Returns the block's
+    positive values and whether any differed from ``expected``.
+    """
+    sel = pp.in_rows(a, b)
+    rows, cols = pp.row[sel] - a, pp.col[sel]
+    got = d32[rows, cols]
+    mismatch = not np.array_equal(got, expected[sel], equal_nan=True)
+    d32[rows, cols] = np.nan
+    if symmetric:  # only the strict lower triangle: column < row
+        diag = d32[:, a:b]
+        diag[np.triu_indices(b - a)] = np.nan
+    else:
+        d32[np.arange(b - a), np.arange(a, b)] = np.nan
+    acc.add_negatives(d32)
+    return got, mismatch
+
+
 class _Sink:
     """Receives each block of the pass: checks and masks positives, counts negatives, stores."""
 
@@ -284,19 +319,9 @@ class _Sink:
         d32 = np.asarray(d).astype(np.float32)
         self._store(a, b, d32)
         sel = self.pp.in_rows(a, b)
-        rows, cols = self.pp.row[sel] - a, self.pp.col[sel]
-        got = d32[rows, cols]
-        self.gathered[sel] = got
-        want = self.expected[sel]
-        if not np.array_equal(got, want, equal_nan=True):
-            self.mismatch = True
-        d32[rows, cols] = np.nan
-        if self.symmetric:  # only the strict lower triangle: column < row
-            diag = d32[:, a:b]
-            diag[np.triu_indices(b - a)] = np.nan
-        else:
-            d32[np.arange(b - a), np.arange(a, b)] = np.nan
-        self.acc.add_negatives(d32)
+        self.gathered[sel], mismatch = count_block(self.acc, self.pp, self.expected,
+                                                   self.symmetric, a, b, d32)
+        self.mismatch |= mismatch
 
     def _store(self, a: int, b: int, d32: np.ndarray) -> None:
         if self.matrix is not None:
@@ -369,6 +394,13 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     expected, pre_evaluations = positive_values(descriptor, descriptors, pp, count=True)
     pre_s = time.perf_counter() - start
     kind = resolve_storage(storage, n)
+    from lidar_iris_eval import engine as engines
+
+    if engines.current() is not None:
+        kept = kind if storage != "auto" else "none"  # auto: nothing to warn about
+        return _stream_on_cluster(engines.current(), descriptor, descriptors, pp, expected,
+                                  n_positive_pairs, exclude, budget, progress, kept,
+                                  pre_s, pre_evaluations)
     sink = _Sink(StreamingPR(expected, pp.weight), pp, expected, symmetric, n, kind)
     affinity, matches = affinity_matrix(descriptor, descriptors, exclude, budget, progress,
                                         sink=sink, store=False)
@@ -389,3 +421,46 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
         matrix=sink.matrix, seconds=seconds, n_evaluations=evaluations, symmetric=symmetric,
         decimated=sink.decimated, step=sink.step, storage=kind, passes=passes)
     return affinity, acc.curve(n_positive_pairs), matches
+
+
+def _stream_on_cluster(engine, descriptor, descriptors, pp, expected, n_positive_pairs,
+                       exclude, budget, progress, kind, pre_s, pre_evaluations):
+    """:func:`stream_protocol2` with every block a Dask task returning reductions only.
+
+    No affinity comes back from the cluster (``storage`` is ``none``; a
+    warning says so when another was asked for).
+    """
+    import time
+
+    from lidar_iris_eval.engine.tasks import stream_blocks
+    from lidar_iris_eval.errors import warn
+    from lidar_iris_eval.matching.blocks import BestMatches, block_rows, query_blocks
+
+    n = len(descriptors)
+    if kind != "none" and n > 0:
+        warn("protocol 2 on a Dask cluster", f"blocks return counts only; the {kind} "
+             "affinity is not kept (metrics are exact and complete)")
+    blocks = list(query_blocks(0, n, block_rows(n, budget)))
+    start = time.perf_counter()
+    res = stream_blocks(engine, descriptor, descriptors, StreamingPR(expected, pp.weight), pp,
+                        expected, blocks, exclude, progress)
+    passes, evaluations = 1, res["evaluations"] + pre_evaluations
+    if res["mismatch"]:
+        warn(f"{descriptor.name} protocol 2",
+             "pairwise distances of the positive pairs differ between batch shapes; "
+             "counting the negatives again against the block values (a second pass)")
+        gathered = res["gathered"]
+        again = stream_blocks(engine, descriptor, descriptors, StreamingPR(gathered, pp.weight),
+                              pp, gathered, blocks, None, None)
+        res["acc"], passes = again["acc"], 2
+        evaluations += again["evaluations"]
+    seconds = time.perf_counter() - start + pre_s
+    matches = None
+    if exclude is not None:
+        match, dist, yaw, first = res["p1"]
+        matches = BestMatches(np.arange(first, n), match, dist, yaw, seconds, evaluations,
+                              "affinity")
+    affinity = StreamedAffinity(matrix=None, seconds=seconds, n_evaluations=evaluations,
+                                symmetric=bool(descriptor.symmetric), storage="none",
+                                passes=passes)
+    return affinity, res["acc"].curve(n_positive_pairs), matches
