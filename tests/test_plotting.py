@@ -154,18 +154,21 @@ def test_plot_writes_every_figure_at_fixed_size(run_dir, tmp_path, capsys):
     code, stdout, stderr = run_cli(["plot", str(run_dir), "--out", str(out)], capsys)
     assert code == 0, stderr
     written = [Path(p) for p in stdout.split()]
-    assert sorted(p.name for p in written) == ["affinity.png", "pr_protocol1.png",
-                                               "pr_protocol2.png", "timing.png", "trajectory.png"]
+    stems = ["affinity", "pr_protocol1", "pr_protocol2", "timing", "trajectory"]
+    # every figure twice: the PNG asked for and a vector PDF for papers
+    assert sorted(p.name for p in written) == sorted(f"{s}.{x}" for s in stems
+                                                     for x in ("png", "pdf"))
+    assert all((out / f"{s}.pdf").read_bytes()[:5] == b"%PDF-" for s in stems)
     assert "sequence not found" in stderr  # iris figures need the scans: skipped, said so
     for path in written:
         assert path.parent == out and path.stat().st_size > 10_000
-    # 3.5 in wide at 300 dpi; heights: PR 2.6 in, timing 2.2 in, affinity one row of
-    # three panels 0.2 + 1.08 in, trajectory two panels side by side 1.85 + 0.3 in
-    assert png_size(out / "pr_protocol1.png") == (1050, 780)
-    assert png_size(out / "pr_protocol2.png") == (1050, 780)
+    # 300 dpi. PR: curves reach recall 0.9, so two 3.5 × 2.6 in panels (full, zoom) plus
+    # 0.13 in per legend row (3 entries in 3 columns: 1 row) + 0.1 in; timing 3.5 × 2.2 in;
+    # affinity one row of three panels 0.2 + 1.08 in; trajectory two panels 1.85 + 0.42 in
+    assert png_size(out / "pr_protocol1.png") == (2100, round((2.6 + 0.13 + 0.1) * 300))
     assert png_size(out / "timing.png") == (1050, 660)
     assert png_size(out / "affinity.png") == (1050, 384)
-    assert png_size(out / "trajectory.png") == (1050, 645)
+    assert png_size(out / "trajectory.png") == (1050, round((1.85 + 0.42) * 300))
 
 
 def test_default_output_is_the_runs_figures_folder_in_vector_format(run_dir):
@@ -196,10 +199,39 @@ def test_pr_curves_plot_exactly_pr_csv(run_dir, protocol):
         assert f"F1max {row['f1_max']:.3f}" in curve.get_label()
     ax = fig.axes[0]
     assert ax.get_xlabel() == "Recall" and ax.get_ylabel() == "Precision"
-    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert ax.get_legend() is None  # never on the data: below the axes
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
     assert len(legend) == len(METHODS) + 1 and legend[-1] == "max F1"
     # colours are fixed per method, whatever the run
     assert line(fig, "pr:lidar-iris").get_color() != line(fig, "pr:m2dp").get_color()
+
+
+def _overlaps(fig, artist) -> list:
+    """Axes whose drawing area ``artist``'s box intersects, after a draw."""
+    fig.canvas.draw()
+    box = artist.get_window_extent()
+    return [ax for ax in fig.axes if ax.get_window_extent().overlaps(box)]
+
+
+def test_legend_is_outside_the_data_and_a_zoom_shows_high_recall():
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from lidar_iris_eval.plotting.pr import ZOOM_RECALL, PRCurve, pr_figure
+
+    r = np.linspace(0, 1, 101)
+    curves = [PRCurve("a", "A (AP 0.99)", "#D55E00", r, np.where(r < 0.95, 1.0, 0.8)),
+              PRCurve("b", "B (AP 0.98)", "#0072B2", r, np.where(r < 0.93, 1.0, 0.7)),
+              PRCurve("c", "C (AP 0.10)", "#009E73", r[:40], np.linspace(1, 0.2, 40))]
+    fig = pr_figure(curves, "title")
+    FigureCanvasAgg(fig)
+    main, zoom = fig.axes[:2]
+    assert not _overlaps(fig, fig.legends[0])  # no axes (hence no curve) under the legend
+    assert zoom.get_xlim()[0] == pytest.approx(ZOOM_RECALL - 0.005)
+    assert zoom.get_ylim()[0] < 0.7 < zoom.get_ylim()[1]  # the lowest point there is shown
+    for c in curves[:2]:
+        np.testing.assert_array_equal(line(fig, f"zoom:pr:{c.key}").get_ydata(), c.precision)
+    # a run where nothing reaches recall 0.9 gets no zoom panel
+    assert len(pr_figure(curves[2:]).axes) == 1
 
 
 def test_long_curves_are_thinned_without_losing_shape():
@@ -228,11 +260,13 @@ def test_compare_labels_runs_and_overlays_their_curves(run_dir, tmp_path):
     dashes = {line(fig, f"pr:{run.name}: m2dp").get_linestyle() for run in runs}
     assert len(dashes) == 2
     written = plot_compare([run_dir, other], tmp_path / "cmp", "png")
-    assert sorted(p.name for p in written) == ["pr_protocol1.png", "pr_protocol2.png"]
+    assert sorted(p.name for p in written) == ["pr_protocol1.pdf", "pr_protocol1.png",
+                                               "pr_protocol2.pdf", "pr_protocol2.png"]
     with pytest.warns(LirisWarning, match="replacing existing figure"):  # --out: never silent
         plot_compare([run_dir, other], tmp_path / "cmp", "png")
-    # legend below the axes: 2.6 in + 0.12 in per entry (4 curves + max F1) + 0.1 in
-    assert png_size(tmp_path / "cmp" / "pr_protocol1.png") == (1050, round(3.3 * 300))
+    # full and zoom panels; legend below them: 2.6 in + 0.13 in per row (4 curves + max F1
+    # in 3 columns: 2 rows) + 0.1 in
+    assert png_size(tmp_path / "cmp" / "pr_protocol1.png") == (2100, round(2.96 * 300))
 
 
 # ---- affinity -----------------------------------------------------------------------------
@@ -262,7 +296,15 @@ def test_affinity_shows_ground_truth_and_methods_on_one_scale(run_dir):
     images = [im for ax in fig.axes for im in ax.get_images()]
     assert len(images) == 1 + len(METHODS)
     assert {im.get_clim() for im in images} == {(0.0, 1.0)}
-    assert sum(1 for ax in fig.axes if ax.get_label() == "<colorbar>") == 1
+    # two colour bars: binary ground truth apart from the per-method similarity
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    labels = sorted(ax.get_ylabel() for ax in bars)
+    assert len(bars) == 2 and labels[0].startswith("ground truth") and f"{RADIUS:g} m" in labels[0]
+    assert "per method" in labels[1] and "d_min" in labels[1]
+    assert image(fig, "affinity:ground-truth").get_cmap().name != \
+        image(fig, "affinity:m2dp").get_cmap().name
+    titles = [ax.get_title() for ax in fig.axes if ax.get_images()]
+    assert any(t.startswith("M2DP\nd ∈ [") for t in titles)  # the range normalised
 
 
 # ---- trajectory -----------------------------------------------------------------------------
@@ -276,8 +318,12 @@ def test_outcomes_by_hand():
     })
     got = outcomes(matches, 0.25)
     assert got.tp.tolist() == [30, 34]  # accepted (≤ τ, equality included) and right
-    assert got.fp.tolist() == [32]
+    assert got.wrong.tolist() == [32]  # accepted, wrong place, on a revisit
+    assert got.false_alarm.tolist() == [] and got.fp.tolist() == [32]
     assert got.missed.tolist() == [31]  # a revisit whose best match was rejected
+    assert got.n_revisits == 4 == len(got.tp) + len(got.wrong) + len(got.missed)
+    alarm = outcomes(matches.assign(distance=[0.1, 0.3, 0.2, 0.1, 0.25]), 0.25)
+    assert alarm.false_alarm.tolist() == [33] and alarm.fp.tolist() == [32, 33]
 
 
 def test_trajectory_marks_detections_in_the_ground_plane(run_dir):
@@ -294,6 +340,16 @@ def test_trajectory_marks_detections_in_the_ground_plane(run_dir):
         matches = pd.read_csv(run_dir / "protocol1" / name / "matches.csv")
         tp = matches[(matches["distance"] <= tau) & matches["is_true"]]["query"].to_numpy()
         np.testing.assert_array_equal(line(fig, f"tp:{name}").get_xdata(), positions[tp, 0])
+        # every revisit query is shown as exactly one of TP, wrong match, missed
+        revisit = matches["is_revisit"].astype(bool)
+        wrong = matches[(matches["distance"] <= tau) & ~matches["is_true"] & revisit]
+        np.testing.assert_array_equal(line(fig, f"wrong:{name}").get_xdata(),
+                                      positions[wrong["query"].to_numpy(), 0])
+        shown = sum(len(line(fig, f"{k}:{name}").get_xdata()) for k in ("tp", "wrong", "missed"))
+        assert shown == int(revisit.sum())
+        title = next(ax.get_title() for ax in fig.axes
+                     if any(ln.get_gid() == f"tp:{name}" for ln in ax.get_lines()))
+        assert f"of {int(revisit.sum())} revisits" in title
     axes = [ax for ax in fig.axes if ax.get_lines()]
     assert axes[0].get_xlabel() == "x [m] (camera)"
     assert axes[0].get_ylabel() == "z [m] (camera)"
@@ -380,10 +436,13 @@ def test_iris_figures_from_the_runs_sequence(run_with_scans, tmp_path):
     frame_fig, align_fig = build_iris(load_run(run_dir))
     matches = pd.read_csv(run_dir / "protocol1" / "lidar-iris" / "matches.csv")
     title = frame_fig.axes[0].get_title()
-    frame = int(title.rsplit("frame ", 1)[1])
+    frame = int(title.rsplit("scan ", 1)[1])  # scans are named 000000.bin...: id = index here
     row = matches[matches["query"] == frame].iloc[0]
     assert bool(row["is_true"]) and bool(row["is_revisit"])
-    assert f"frame {int(row['match'])}" in align_fig.axes[1].get_title()
+    assert f"scan {int(row['match']):06d}" in align_fig.axes[1].get_title()
+    for fig in (frame_fig, align_fig):  # the codes have a colour bar
+        bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+        assert len(bars) == 1 and "code" in bars[0].get_ylabel()
     features = [im for ax in frame_fig.axes for im in ax.get_images()
                 if str(im.get_gid()).startswith("feature:")]
     assert len(features) == 8  # 4 scales × real/imaginary
@@ -394,7 +453,7 @@ def test_alignment_figure_rolls_a_turned_revisit_into_place(run_with_scans):
     _, fig = build_iris(load_run(run_dir), frame=60)
     query = image(fig, "iris:query").get_array()
     aligned = image(fig, "iris:aligned").get_array()
-    assert "frame 0" in fig.axes[1].get_title()  # the partner is the exact revisit
+    assert "scan 000000" in fig.axes[1].get_title()  # the partner is the exact revisit
     assert "yaw 40°" in fig.axes[2].get_title()
     assert np.mean(query == aligned) > 0.99
     assert np.mean(query == image(fig, "iris:candidate").get_array()) < 0.99
@@ -437,8 +496,8 @@ def test_plots_a_real_liris_eval_run(run_with_scans, tmp_path, capsys):
     assert code == 0, err
     written = plot_run(out, fmt="png")
     assert sorted(p.name for p in written) == sorted(
-        f"{s}.png" for s in ("pr_protocol1", "pr_protocol2", "affinity", "trajectory", "timing",
-                             "iris_frame", "iris_alignment"))
+        f"{s}.{x}" for s in ("pr_protocol1", "pr_protocol2", "affinity", "trajectory", "timing",
+                             "iris_frame", "iris_alignment") for x in ("png", "pdf"))
     run = load_run(out)
     for protocol in (1, 2):
         fig = build_pr(run, protocol)

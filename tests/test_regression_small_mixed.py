@@ -38,11 +38,37 @@ def _gt(seq, capsys):
     return json.loads(capsys.readouterr().out)
 
 
-def test_all_descriptors_ran_both_protocols(small_mixed_run):
+#: the README's quick-start table (AP, F1max, R@100P, EP), to its 3 decimals; a change
+#: of any descriptor's numbers on this sequence must update the README with it
+README_TABLE = {
+    (1, "lidar-iris"): (0.970, 0.972, 0.946, 0.973),
+    (1, "scan-context"): (0.995, 0.995, 0.990, 0.995),
+    (1, "m2dp"): (0.118, 0.207, 0.025, 0.512),
+    (1, "esf"): (0.189, 0.309, 0.030, 0.515),
+    (2, "lidar-iris"): (0.873, 0.823, 0.536, 0.768),
+    (2, "scan-context"): (0.916, 0.902, 0.638, 0.819),
+    (2, "m2dp"): (0.214, 0.238, 0.014, 0.507),
+    (2, "esf"): (0.166, 0.208, 0.003, 0.502),
+}
+#: README: top-1 accuracy of protocol 1 on the same- / reverse-direction revisits
+README_TOP1 = {"lidar-iris": (0.93, 1.00), "scan-context": (0.99, 1.00),
+               "m2dp": (0.53, 0.03), "esf": (0.29, 0.44)}
+
+
+@pytest.mark.parametrize("key", sorted(README_TABLE))
+def test_metrics_equal_the_readme_table(small_mixed_run, key):
     _, rows = small_mixed_run
-    for name in ("lidar-iris", "scan-context", "m2dp", "esf"):
-        for protocol in (1, 2):
-            assert 0.0 <= rows[(protocol, name)]["f1_max"] <= 1.0
+    row = rows[key]
+    got = tuple(round(row[k], 3) for k in ("ap", "f1_max", "r100p", "ep"))
+    assert got == README_TABLE[key]
+
+
+@pytest.mark.parametrize("name", sorted(README_TOP1))
+def test_top1_by_direction_equals_the_readme(small_mixed_run, name):
+    _, rows = small_mixed_run
+    row = rows[(1, name)]
+    assert (row["n_revisits_same"], row["n_revisits_reverse"]) == (85, 118)
+    assert (round(row["top1_same"], 2), round(row["top1_reverse"], 2)) == README_TOP1[name]
 
 
 def test_lidar_iris_finds_the_loops(small_mixed_run):

@@ -12,7 +12,8 @@ import click
 @click.option("--compare", is_flag=True,
               help="Overlay the PR curves of several RESULTS directories.")
 @click.option("--format", "fmt", type=click.Choice(["png", "pdf", "svg"]), default="png",
-              show_default=True, help="File format (PNG at 300 dpi).")
+              show_default=True,
+              help="File format (PNG at 300 dpi, always with a vector PDF copy).")
 @click.option("--out", "out_dir", type=click.Path(path_type=Path),
               help="Output folder [default: RESULTS/figures; with --compare, "
                    "compare-<runs>/ next to the first run].")

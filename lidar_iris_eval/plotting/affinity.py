@@ -2,9 +2,12 @@
 
 Descriptor distances live on different scales (Iris Hamming in [0, 1], ESF L1
 in [0, 2], …), so each method is shown as a *similarity*
-``1 − (d − d_min) / (d_max − d_min)`` over its off-diagonal pairs; ground
-truth is 1 for positive pairs. All panels then share one colour scale [0, 1]
-and one colorbar. The diagonal (a frame against itself, stored as NaN) is
+``1 − (d − d_min) / (d_max − d_min)`` with ``d_min``, ``d_max`` taken per
+method over its off-diagonal pairs: the colours compare pairs *within* a
+panel, not methods. Each method panel's title gives its ``[d_min, d_max]``.
+Ground truth is binary (positive pair: closer than the radius) and has its
+own two-colour bar, separate from the similarity bar, so the two are never
+read on one scale. The diagonal (a frame against itself, stored as NaN) is
 drawn as 1 in every panel.
 
 Matrices larger than the panel's pixels are reduced in blocks before drawing:
@@ -19,6 +22,7 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
+from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
@@ -27,6 +31,8 @@ from lidar_iris_eval.plotting import style
 #: at most this many matrix cells per panel side (a panel is ~300 px wide at 300 dpi)
 MAX_DISPLAY = 600
 CMAP = "viridis"
+#: ground truth: two greys, deliberately not on the similarity scale
+GT_CMAP = ListedColormap(["#F2F2F2", "#222222"], name="liris-gt")
 PANEL_HEIGHT = 1.08  # inches per row: a ~0.8 in square panel, its title and tick labels
 MAX_COLUMNS = 3
 
@@ -90,11 +96,13 @@ def affinity_figure_size(n_methods: int) -> tuple[float, float]:
     return style.COLUMN_WIDTH, round(0.2 + rows * PANEL_HEIGHT, 2)
 
 
-def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray]) -> Figure:
+def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray],
+                    radius: float | None = None) -> Figure:
     """Ground truth (bool N×N) beside each method's distance matrix (N×N).
 
     The image of panel k has gid ``"affinity:ground-truth"`` or
     ``"affinity:<name>"``; its array is the (block-reduced) similarity drawn.
+    ``radius`` (metres) labels what a positive pair is.
     """
     n = gt_positive.shape[0]
     block = display_block(n)
@@ -104,22 +112,28 @@ def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray]
     panels = [("ground-truth", "Ground truth", gt)]
     for name, matrix in distances.items():
         reduced = block_reduce(matrix, block, "min")
-        panels.append((name, style.method_label(name), similarity(reduced)))
+        panels.append((name, f"{style.method_label(name)}\n{_range_text(matrix)}",
+                       similarity(reduced)))
 
     rows, cols = affinity_grid(len(panels))
     with style.context():
         fig = style.new_figure(*affinity_figure_size(len(panels) - 1))
         axes = fig.subplots(rows, cols, squeeze=False, sharex=True, sharey=True)
         extent = (-0.5, n - 0.5, n - 0.5, -0.5)  # frame indices on both axes
-        image = None
+        gt_image = sim_image = None
         for k, ax in enumerate(axes.flat):
             if k >= len(panels):
                 ax.set_axis_off()
                 continue
             key, title, data = panels[k]
-            image = ax.imshow(data, cmap=CMAP, vmin=0.0, vmax=1.0, extent=extent,
+            cmap = GT_CMAP if key == "ground-truth" else CMAP
+            image = ax.imshow(data, cmap=cmap, vmin=0.0, vmax=1.0, extent=extent,
                               interpolation="nearest", gid=f"affinity:{key}")
-            ax.set_title(title, pad=2)
+            if key == "ground-truth":
+                gt_image = image
+            else:
+                sim_image = image
+            ax.set_title(title, pad=2, fontsize=6.5, linespacing=1.1)
             ax.xaxis.set_major_locator(MaxNLocator(3, integer=True))
             ax.yaxis.set_major_locator(MaxNLocator(3, integer=True))
             ax.tick_params(labelsize=6, length=2)
@@ -132,7 +146,28 @@ def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray]
                 ax.set_xlabel("frame", labelpad=1)
             if k % cols == 0:
                 ax.set_ylabel("frame", labelpad=1)
-        bar = fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.85, aspect=25, pad=0.02)
-        bar.set_label("similarity", fontsize=7)
-        bar.ax.tick_params(labelsize=6)
+        where = f"< {radius:g} m" if radius is not None else "within the radius"
+        gt_bar = fig.colorbar(gt_image, ax=axes.ravel().tolist(), location="left", shrink=0.5,
+                              aspect=10, pad=0.02, ticks=[0.25, 0.75])
+        gt_bar.ax.set_yticklabels(["no", "yes"])
+        gt_bar.set_label(f"ground truth:\npair {where}", fontsize=6)
+        gt_bar.ax.tick_params(labelsize=6, length=0)
+        if sim_image is not None:
+            bar = fig.colorbar(sim_image, ax=axes.ravel().tolist(), shrink=0.85, aspect=25,
+                               pad=0.02)
+            bar.set_label("similarity 1 − (d − d_min)/(d_max − d_min),\nper method", fontsize=6)
+            bar.ax.tick_params(labelsize=6)
+        if block > 1:
+            fig.suptitle(f"each pixel: the most similar pair of a {block}×{block} block",
+                         fontsize=6, color="0.3")
     return fig
+
+
+def _range_text(matrix: np.ndarray) -> str:
+    """``d ∈ [min, max]`` over the finite off-diagonal distances."""
+    d = np.asarray(matrix, dtype=np.float64)
+    off = d[~np.eye(*d.shape, dtype=bool)] if d.ndim == 2 and d.shape[0] == d.shape[1] else d
+    finite = off[np.isfinite(off)]
+    if not finite.size:
+        return "no finite distance"
+    return f"d ∈ [{finite.min():.3g}, {finite.max():.3g}]"

@@ -71,7 +71,8 @@ def build_affinity(run: RunResults) -> Figure | None:
             matrices[name] = matrix
     if not matrices:
         return None
-    return affinity_figure(run.ground_truth().positive_matrix(), matrices)
+    return affinity_figure(run.ground_truth().positive_matrix(), matrices,
+                           radius=run.gt_settings.radius)
 
 
 def build_trajectory(run: RunResults) -> Figure:
@@ -142,7 +143,8 @@ def build_iris(run: RunResults, frame: int | None = None) -> tuple[Figure | None
     params = desc.params
     image = lidar_iris.iris_image(sequence[frame], params)
     features, mask = lidar_iris.binary_features(image, params)
-    frame_fig = iris_frame_figure(image, features, mask, _wavelengths(params), frame)
+    frame_fig = iris_frame_figure(image, features, mask, _wavelengths(params),
+                                  _scan_id(sequence, frame))
     partner = _true_iris_match(run, frame)
     if partner is None:
         partner = _revisit_partner(run, frame, gt)
@@ -156,7 +158,8 @@ def build_iris(run: RunResults, frame: int | None = None) -> tuple[Figure | None
         warn(f"--frame {frame}", f"no yaw estimate against frame {partner} (every feature bit "
              "masked); alignment figure skipped")
         return frame_fig, None
-    align_fig = iris_alignment_figure(image, other, yaw, dist, (frame, partner))
+    align_fig = iris_alignment_figure(image, other, yaw, dist,
+                                      (_scan_id(sequence, frame), _scan_id(sequence, partner)))
     return frame_fig, align_fig
 
 
@@ -220,13 +223,16 @@ def _write(figures: dict[str, Figure | None], out: Path, fmt: str,
     if out.exists() and not out.is_dir():
         raise LirisError(out, "output path exists and is not a folder")
     written = []
+    # every figure also as vector PDF, the format a paper needs, beside a raster one
+    formats = [fmt] if fmt in style.VECTOR_FORMATS else [fmt, "pdf"]
     for key, fig in figures.items():
         if fig is None:
             continue
-        path = figure_path(out, key, fmt)
-        if warn_overwrite and path.exists():
-            warn(path, "replacing existing figure")
-        written.append(style.save(fig, path))
+        for each in formats:
+            path = figure_path(out, key, each)
+            if warn_overwrite and path.exists():
+                warn(path, "replacing existing figure")
+            written.append(style.save(fig, path))
     return written
 
 
@@ -267,6 +273,17 @@ def _open_run_sequence(run: RunResults):
              "LiDAR Iris figures skipped")
         return None
     return sequence
+
+
+def _scan_id(sequence, index: int) -> str:
+    """The scan's own name (file stem or recorded frame id), not its index in the run."""
+    paths = getattr(sequence, "scan_paths", None)
+    if paths:
+        return Path(paths[index]).stem
+    ids = getattr(sequence, "frame_ids", None)
+    if ids is not None and len(ids) > index:
+        return str(int(ids[index]))
+    return str(index)
 
 
 def _iris_descriptor(run: RunResults):

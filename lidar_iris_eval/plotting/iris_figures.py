@@ -47,8 +47,12 @@ def alignment_shift(yaw_deg: float, sectors: int) -> int:
 
 
 def iris_frame_figure(image: np.ndarray, features: np.ndarray, mask: np.ndarray,
-                      wavelengths: list[float] | None = None, frame: int | None = None) -> Figure:
-    """The iris image on top, and its binary maps below (real | imaginary per scale)."""
+                      wavelengths: list[float] | None = None,
+                      frame: int | str | None = None) -> Figure:
+    """The iris image on top, and its binary maps below (real | imaginary per scale).
+
+    ``frame`` labels the scan (its file name or id, e.g. ``"scan 000123"``).
+    """
     rings, sectors = image.shape
     panels = feature_panels(features, mask, rings)
     nscale = len(panels) // 2
@@ -56,8 +60,9 @@ def iris_frame_figure(image: np.ndarray, features: np.ndarray, mask: np.ndarray,
         fig = style.new_figure(*FRAME_SIZE)
         grid = fig.add_gridspec(nscale + 1, 2, height_ratios=[1.7] + [1] * nscale)
         top = fig.add_subplot(grid[0, :])
-        _show_image(top, image)
-        title = "LiDAR Iris image" + (f", frame {frame}" if frame is not None else "")
+        shown = _show_image(top, image)
+        _code_bar(fig, shown, top)
+        title = "LiDAR Iris image" + (f", {_scan(frame)}" if frame is not None else "")
         top.set_title(title, pad=2)
         top.set_ylabel("ring")
         top.set_xlabel("sector (azimuth, CCW)", labelpad=1)
@@ -87,8 +92,8 @@ def iris_alignment_figure(query: np.ndarray, candidate: np.ndarray, yaw_deg: flo
     aligned = np.roll(candidate, shift, axis=1)
     qi, ci = frames if frames else ("query", "candidate")
     titles = [
-        f"query (frame {qi})",
-        f"candidate (frame {ci})",
+        f"query ({_scan(qi)})",
+        f"candidate ({_scan(ci)})",
         f"candidate rolled by {_columns(shift, sectors)} "
         f"(yaw {yaw_deg:.0f}°, distance {distance:.3f})",
     ]
@@ -97,19 +102,34 @@ def iris_alignment_figure(query: np.ndarray, candidate: np.ndarray, yaw_deg: flo
         axes = fig.subplots(3, 1, sharex=True)
         for ax, img, title, key in zip(axes, (query, candidate, aligned), titles,
                                        ("query", "candidate", "aligned"), strict=True):
-            _show_image(ax, img, gid=f"iris:{key}")
+            shown = _show_image(ax, img, gid=f"iris:{key}")
             ax.set_title(title, pad=2, fontsize=7)
             ax.set_ylabel("ring", fontsize=7)
         axes[-1].set_xlabel("sector (azimuth, CCW)")
+        _code_bar(fig, shown, list(axes))
     return fig
 
 
-def _show_image(ax, image: np.ndarray, gid: str = "iris:image") -> None:
+def _scan(label: int | str) -> str:
+    """``"scan 000123"`` for an id or file stem; the role names pass through."""
+    text = str(label)
+    return text if text in ("query", "candidate") else f"scan {text}"
+
+
+def _code_bar(fig, image, axes) -> None:
+    """Colour bar of the pixel codes (8 height-bin bits; power scale, ticks at real codes)."""
+    bar = fig.colorbar(image, ax=axes, pad=0.01, aspect=12, ticks=[0, 2, 8, 32, 128, 255])
+    bar.set_label("code (height-bin bits)", fontsize=6)
+    bar.ax.tick_params(labelsize=5.5, length=1.5)
+
+
+def _show_image(ax, image: np.ndarray, gid: str = "iris:image"):
     """Pixel codes on a power scale: low height bins (the ground, code 2 on KITTI)
     give small codes that a linear scale would leave black."""
-    ax.imshow(image, cmap=IMAGE_CMAP, norm=PowerNorm(IMAGE_GAMMA, vmin=0, vmax=255), aspect="auto",
-              interpolation="nearest", gid=gid)
+    shown = ax.imshow(image, cmap=IMAGE_CMAP, norm=PowerNorm(IMAGE_GAMMA, vmin=0, vmax=255),
+                      aspect="auto", interpolation="nearest", gid=gid)
     ax.tick_params(labelsize=6, length=2)
+    return shown
 
 
 def _columns(shift: int, sectors: int) -> str:

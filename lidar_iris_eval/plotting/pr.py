@@ -4,6 +4,10 @@ Each curve is drawn from ``pr.csv`` as written (the exact curve, one point per
 threshold); only curves with more points than a PNG can show (protocol 2 on
 KITTI has millions) are thinned, by arc length, so every visible corner stays.
 The maximum-F1 point is marked, and the legend carries AP and F1max.
+
+The legend sits below the axes, never on the data. When a curve reaches a
+recall of 0.9, a second panel zooms on recall ≥ 0.9, where the strong methods
+(LiDAR Iris, Scan Context) differ and the full panel shows one vertical line.
 """
 
 from __future__ import annotations
@@ -15,10 +19,15 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.patches import Rectangle
 
 from lidar_iris_eval.plotting import style
 
 PR_SIZE = (style.COLUMN_WIDTH, 2.6)
+#: with the zoom panel: two panels side by side, a two-column figure
+PR_ZOOM_SIZE = (2 * style.COLUMN_WIDTH, 2.6)
+#: the zoom panel shows recall from here to 1 (when any curve reaches it)
+ZOOM_RECALL = 0.9
 #: above this many points a curve is thinned for display
 MAX_PLOT_POINTS = 20_000
 #: thinning step in (recall, precision) units: far below one pixel at 300 dpi
@@ -77,16 +86,23 @@ def legend_label(name: str, ap: float, f1_max: float) -> str:
     return f"{name} ({', '.join(parts)})" if parts else name
 
 
-def pr_figure(curves: Sequence[PRCurve], title: str = "", legend_outside: bool = False) -> Figure:
+def pr_figure(curves: Sequence[PRCurve], title: str = "", legend_outside: bool = True,
+              zoom: bool | None = None) -> Figure:
     """Overlay PR curves; mark each curve's maximum-F1 point.
 
     The curve of ``c`` is the Line2D with gid ``"pr:" + c.key`` and its
     max-F1 marker has gid ``"f1max:" + c.key``, so tests and callers can find
-    the plotted data again.
+    the plotted data again. The zoom panel (``zoom=None``: when some curve
+    reaches recall :data:`ZOOM_RECALL`) repeats them with gids prefixed
+    ``"zoom:"``. The legend is drawn below the axes (``legend_outside``).
     """
+    if zoom is None:
+        zoom = any(np.nanmax(np.asarray(c.recall, dtype=np.float64), initial=0.0) >= ZOOM_RECALL
+                   for c in curves)
     with style.context():
-        fig = style.new_figure(*pr_figure_size(len(curves), legend_outside))
-        ax = fig.add_subplot()
+        fig = style.new_figure(*pr_figure_size(len(curves), legend_outside, zoom))
+        axes = fig.subplots(1, 2, width_ratios=[1, 1]) if zoom else [fig.add_subplot()]
+        main = axes[0]
         for curve in curves:
             recall = np.asarray(curve.recall, dtype=np.float64)
             precision = np.asarray(curve.precision, dtype=np.float64)
@@ -95,38 +111,72 @@ def pr_figure(curves: Sequence[PRCurve], title: str = "", legend_outside: bool =
             shown = np.arange(len(recall))
             if len(recall) > MAX_PLOT_POINTS:
                 shown = thin_indices(recall, precision, keep=[] if best is None else [best])
-            ax.plot(recall[shown], precision[shown], color=curve.color,
-                    linestyle=curve.linestyle, label=curve.label, gid=f"pr:{curve.key}")
-            if best is not None:
-                ax.plot([recall[best]], [precision[best]], marker="o", markersize=3.5,
-                        markerfacecolor="white", markeredgecolor=curve.color,
-                        markeredgewidth=1.0, linestyle="none", gid=f"f1max:{curve.key}",
-                        zorder=3)
-        ax.set_xlim(0, 1.02)
-        ax.set_ylim(0, 1.02)
-        ax.set_xlabel("Recall")
-        ax.set_ylabel("Precision")
-        ax.grid(True, linewidth=0.3, alpha=0.5)
+            for ax, prefix in zip(axes, ("", "zoom:"), strict=False):
+                ax.plot(recall[shown], precision[shown], color=curve.color,
+                        linestyle=curve.linestyle, label=curve.label if not prefix else None,
+                        gid=f"{prefix}pr:{curve.key}")
+                if best is not None:
+                    ax.plot([recall[best]], [precision[best]], marker="o", markersize=3.5,
+                            markerfacecolor="white", markeredgecolor=curve.color,
+                            markeredgewidth=1.0, linestyle="none",
+                            gid=f"{prefix}f1max:{curve.key}", zorder=3)
+        main.set_xlim(0, 1.02)
+        main.set_ylim(0, 1.02)
+        for ax in axes:
+            ax.set_xlabel("Recall")
+            ax.grid(True, linewidth=0.3, alpha=0.5)
+        main.set_ylabel("Precision")
+        if zoom:
+            _zoom_panel(axes[1], main, curves)
         if title:
-            ax.set_title(title)
+            if zoom:
+                fig.suptitle(title)
+            else:
+                main.set_title(title)
         if curves:
             # one extra entry explains the marker instead of repeating it per curve
-            handles, labels = ax.get_legend_handles_labels()
+            handles, labels = main.get_legend_handles_labels()
             handles.append(Line2D([], [], marker="o", markersize=3.5, markerfacecolor="white",
                                   markeredgecolor="0.35", linestyle="none"))
             labels.append("max F1")
             if legend_outside:
-                fig.legend(handles, labels, loc="outside lower center", ncols=1)
+                fig.legend(handles, labels, loc="outside lower center",
+                           ncols=legend_columns(len(labels), zoom))
             else:
-                ax.legend(handles, labels, loc="lower left")
+                main.legend(handles, labels, loc="lower left")
     return fig
 
 
-def pr_figure_size(n_curves: int, legend_outside: bool = False) -> tuple[float, float]:
-    """Width and height (inches): fixed, plus one legend line per entry when outside."""
-    width, height = PR_SIZE
+def _zoom_panel(ax, main, curves: Sequence[PRCurve]) -> None:
+    """Recall ≥ ZOOM_RECALL, precision down to the lowest point reached there."""
+    low = 1.0
+    for curve in curves:
+        recall = np.asarray(curve.recall, dtype=np.float64)
+        precision = np.asarray(curve.precision, dtype=np.float64)
+        inside = recall >= ZOOM_RECALL
+        if inside.any():
+            low = min(low, float(np.nanmin(precision[inside])))
+    bottom = max(0.0, low - 0.05 * max(1.0 - low, 0.02))
+    ax.set_xlim(ZOOM_RECALL - 0.005, 1.005)
+    ax.set_ylim(bottom, 1.0 + 0.02 * (1.0 - bottom) + 0.002)
+    ax.set_title(f"zoom: recall ≥ {ZOOM_RECALL:g}", pad=2)
+    # show on the full panel where the zoom is
+    main.add_patch(Rectangle((ZOOM_RECALL, bottom), 1.0 - ZOOM_RECALL, 1.0 - bottom,
+                             fill=False, linewidth=0.5, linestyle="--", edgecolor="0.4",
+                             gid="zoom-region"))
+
+
+def legend_columns(n_entries: int, zoom: bool) -> int:
+    return min(n_entries, 3 if zoom else 2)
+
+
+def pr_figure_size(n_curves: int, legend_outside: bool = True,
+                   zoom: bool = False) -> tuple[float, float]:
+    """Width and height (inches): fixed, plus the legend rows below the axes."""
+    width, height = PR_ZOOM_SIZE if zoom else PR_SIZE
     if legend_outside:
-        height += 0.12 * (n_curves + 1) + 0.1
+        rows = math.ceil((n_curves + 1) / legend_columns(n_curves + 1, zoom))
+        height += 0.13 * rows + 0.1
     return width, round(height, 2)
 
 

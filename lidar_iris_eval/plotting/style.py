@@ -22,6 +22,8 @@ COLUMN_WIDTH = 3.5
 #: raster resolution; vector formats ignore it
 DPI = 300
 FORMATS = ("png", "pdf", "svg")
+#: formats that stay sharp at any size; a PNG is always accompanied by a PDF
+VECTOR_FORMATS = ("pdf", "svg")
 
 #: fixed colours per registry name (Okabe–Ito, safe for colour-blind readers)
 METHOD_COLORS = {
@@ -46,7 +48,8 @@ METHOD_ORDER = tuple(METHOD_COLORS)
 RUN_LINESTYLES = ("-", "--", ":", "-.")
 
 #: detection markers on the trajectory plot (true/false positive, missed revisit)
-OUTCOME_COLORS = {"tp": "#009E73", "fp": "#D55E00", "missed": "#0072B2"}
+OUTCOME_COLORS = {"tp": "#009E73", "wrong": "#D55E00", "false_alarm": "#000000",
+                  "missed": "#0072B2"}
 
 RC = {
     "font.size": 8,

@@ -3,10 +3,12 @@
 One panel per method. Grey is the path; a thick band marks the revisit
 queries (ground truth); markers show protocol 1 at the method's max-F1
 threshold τ: a query is *accepted* when its best match has distance ≤ τ, a
-true positive when that match is within the radius, a false positive
-otherwise, and a *missed revisit* when it is a revisit query whose best match
-was rejected. (A wrong accepted match on a revisit query is drawn as a false
-positive, so every query carries at most one marker.)
+true positive when that match is within the radius, and otherwise a *wrong
+match* when the query is a revisit (a loop existed, the method closed it to
+the wrong place) or a *false alarm* when it is not. A revisit query whose
+best match was rejected is *missed*. Every revisit query is exactly one of
+true positive, wrong match or missed, and each panel's title counts them
+against the number of revisits, so TP + wrong + missed = revisits.
 """
 
 from __future__ import annotations
@@ -24,18 +26,25 @@ from lidar_iris_eval.plotting import style
 
 PANEL_HEIGHT = 1.85
 SINGLE_SIZE = (style.COLUMN_WIDTH, 3.0)
-LEGEND_HEIGHT = 0.3
+LEGEND_HEIGHT = 0.42
 AXIS_NAMES = "xyz"
 
 
 @dataclass(frozen=True)
 class Outcomes:
-    """Query indices by protocol 1 outcome at one threshold."""
+    """Query indices by protocol 1 outcome at one threshold (see the module docstring)."""
 
     tp: np.ndarray
-    fp: np.ndarray
+    wrong: np.ndarray  # accepted, wrong place, on a revisit query
+    false_alarm: np.ndarray  # accepted, on a query with no revisit
     missed: np.ndarray
     threshold: float
+    n_revisits: int = -1
+
+    @property
+    def fp(self) -> np.ndarray:
+        """Every accepted wrong match (wrong matches and false alarms)."""
+        return np.sort(np.concatenate([self.wrong, self.false_alarm]))
 
 
 def as_bool(column: pd.Series) -> np.ndarray:
@@ -55,9 +64,11 @@ def outcomes(matches: pd.DataFrame, threshold: float) -> Outcomes:
     revisit = as_bool(matches["is_revisit"])
     return Outcomes(
         tp=query[accepted & is_true],
-        fp=query[accepted & ~is_true],
+        wrong=query[accepted & ~is_true & revisit],
+        false_alarm=query[accepted & ~is_true & ~revisit],
         missed=query[revisit & ~accepted],
         threshold=float(threshold),
+        n_revisits=int(np.count_nonzero(revisit)),
     )
 
 
@@ -84,7 +95,8 @@ def trajectory_figure(positions: np.ndarray, axes_idx: tuple[int, int], revisit:
     # true positives are the common case: small on long runs so the rare misses and
     # false positives, drawn on top of them, stay visible
     tp_size = 2.2 if len(xy) <= 500 else 1.2
-    marker = {"tp": ("o", tp_size), "fp": ("x", 3.0), "missed": ("o", 2.8)}
+    marker = {"tp": ("o", tp_size), "wrong": ("^", 2.8), "false_alarm": ("x", 3.0),
+              "missed": ("o", 2.8)}
     with style.context():
         fig = style.new_figure(*trajectory_figure_size(n))
         axes = fig.subplots(rows, cols, squeeze=False)
@@ -100,7 +112,7 @@ def trajectory_figure(positions: np.ndarray, axes_idx: tuple[int, int], revisit:
                     linestyle="none", gid="start")
             if name:
                 result = results[name]
-                for kind in ("tp", "missed", "fp"):
+                for kind in ("tp", "missed", "wrong", "false_alarm"):
                     idx = getattr(result, kind)
                     shape, size = marker[kind]
                     filled = kind == "tp"
@@ -109,8 +121,11 @@ def trajectory_figure(positions: np.ndarray, axes_idx: tuple[int, int], revisit:
                             color=style.OUTCOME_COLORS[kind],
                             markerfacecolor=style.OUTCOME_COLORS[kind] if filled else "none",
                             gid=f"{kind}:{name}", zorder=3)
-                ax.set_title(f"{style.method_label(name)}\nTP {len(result.tp)} · FP "
-                             f"{len(result.fp)} · missed {len(result.missed)}", fontsize=6.5,
+                revisits = (f" of {result.n_revisits} revisits" if result.n_revisits >= 0
+                            else "")
+                ax.set_title(f"{style.method_label(name)}: TP {len(result.tp)} · wrong "
+                             f"{len(result.wrong)} · missed {len(result.missed)}{revisits}\n"
+                             f"false alarms {len(result.false_alarm)}", fontsize=6,
                              pad=2, linespacing=1.1)
             ax.set_aspect("equal", adjustable="datalim")
             ax.tick_params(labelsize=6, length=2)
@@ -140,9 +155,11 @@ def _legend_handles(with_detections: bool) -> list[Line2D]:
         handles += [
             Line2D([], [], color=c["tp"], marker="o", markersize=2.5, linestyle="none",
                    label="true positive"),
-            Line2D([], [], color=c["fp"], marker="x", markersize=3, linestyle="none",
-                   label="false positive"),
+            Line2D([], [], color=c["wrong"], marker="^", markerfacecolor="none",
+                   markersize=2.8, linestyle="none", label="wrong match (revisit)"),
             Line2D([], [], color=c["missed"], marker="o", markerfacecolor="none",
                    markersize=2.5, linestyle="none", label="missed revisit"),
+            Line2D([], [], color=c["false_alarm"], marker="x", markersize=3, linestyle="none",
+                   label="false alarm (no revisit)"),
         ]
     return handles
