@@ -1,0 +1,124 @@
+"""``--scheduler``: a Dask cluster gives exactly the metrics of the default scheduler.
+
+Starts ``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1 (one
+thread each), evaluates a small synthetic sequence through them, and compares
+every metric with the default (local processes) run; stops them afterwards.
+Skipped when Dask is not installed (``pip install -e ".[dask]"``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_cli, write_kitti_sequence
+
+distributed = pytest.importorskip("distributed")
+
+#: keys that are timings or storage notes, not metrics
+NOT_METRICS = {"match_ms_per_query", "match_us_per_pair", "extract_ms_per_scan",
+               "affinity_stored"}
+
+
+def loop_sequence(root: Path, frames: int = 70) -> Path:
+    """A car driving 1.3 laps of a 20 m circle through a fixed random world of boxes."""
+    rng = np.random.default_rng(8)
+    centres = rng.uniform(-45, 45, (160, 2))
+    sizes = rng.uniform(0.5, 4.0, (160, 3))
+    world = []
+    for (cx, cy), (sx, sy, sz) in zip(centres, sizes, strict=True):
+        n = 120
+        world.append(np.c_[cx + rng.uniform(-sx, sx, n), cy + rng.uniform(-sy, sy, n),
+                           rng.uniform(-1.7, sz, n)])
+    ground = np.c_[rng.uniform(-60, 60, (6000, 2)), np.full(6000, -1.73)]
+    world = np.concatenate(world + [ground])
+    angles = np.linspace(0, 2.6 * np.pi, frames)
+    poses, scans = [], []
+    for a in angles:
+        x, y, yaw = 20 * np.cos(a), 20 * np.sin(a), a + np.pi / 2
+        rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0],
+                        [0, 0, 1]])
+        local = (world - [x, y, 0]) @ rot  # world -> sensor frame
+        local = local[np.linalg.norm(local[:, :2], axis=1) < 50]
+        local += rng.normal(0, 0.02, local.shape)
+        scans.append(np.c_[local, np.zeros(len(local))].astype(np.float32))
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = rot, [x, y, 0]
+        poses.append(pose)
+    return write_kitti_sequence(root, scans, np.array(poses))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def metrics(path: Path) -> list[dict]:
+    rows = json.loads(path.read_text())["results"]
+    return [{k: v for k, v in r.items() if k not in NOT_METRICS} for r in rows]
+
+
+def test_loopback_cluster_equals_default_scheduler(tmp_path, capsys, monkeypatch):
+    seq = loop_sequence(tmp_path / "seq")
+    args = ["eval", seq, "--protocol", "1", "--protocol", "2", "-d", "m2dp,scan-context",
+            "--exclude", "10", "-q"]
+    monkeypatch.setenv("LIRIS_CACHE_DIR", str(tmp_path / "cache-default"))
+    code, _, err = run_cli([*args, "--out", tmp_path / "default"], capsys)
+    assert code == 0, err
+
+    dask_cli = Path(sys.executable).parent / "dask"
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+           "NUMBA_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    logs = open(tmp_path / "dask.log", "w")  # noqa: SIM115 - closed in finally
+    procs = [subprocess.Popen([dask_cli, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--no-dashboard"], env=env, stdout=logs, stderr=logs)]
+    try:
+        time.sleep(1.0)
+        procs += [subprocess.Popen([dask_cli, "worker", address, "--nthreads", "1",
+                                    "--nworkers", "1", "--no-dashboard",
+                                    "--local-directory", str(tmp_path / f"w{i}")],
+                                   env=env, stdout=logs, stderr=logs) for i in range(2)]
+        with distributed.Client(address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=120)
+            assert len(client.scheduler_info()["workers"]) == 2
+        monkeypatch.setenv("LIRIS_CACHE_DIR", str(tmp_path / "cache-dask"))  # extract there too
+        code, _, err = run_cli([*args, "--out", tmp_path / "cluster", "--scheduler", address],
+                               capsys)
+        assert code == 0, err
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        logs.close()
+
+    default = metrics(tmp_path / "default" / "metrics.json")
+    cluster = metrics(tmp_path / "cluster" / "metrics.json")
+    assert len(default) == 4  # 2 descriptors x 2 protocols
+    assert cluster == default  # every metric, count and threshold, exactly
+    p2 = [r for r in default if r["protocol"] == 2]
+    assert all(r["n_positives"] > 0 and r["ap"] > 0.05 for r in p2)
+    assert (tmp_path / "default" / "protocol2" / "m2dp" / "affinity.npy").is_file()
+    assert not (tmp_path / "cluster" / "protocol2" / "m2dp" / "affinity.npy").exists()
+
+
+def test_unknown_scheduler_is_one_line_error(tmp_path, capsys):
+    from conftest import assert_one_line_error
+
+    seq = loop_sequence(tmp_path / "seq", frames=12)
+    code, _, err = run_cli(["eval", seq, "--protocol", "2", "-d", "m2dp", "--scheduler",
+                            "yarn", "--out", tmp_path / "r", "-q"], capsys)
+    assert_one_line_error(code, err, "--scheduler yarn")
