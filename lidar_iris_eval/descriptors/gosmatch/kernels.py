@@ -80,20 +80,23 @@ def draw_samples(seed: int, query: int, candidate: int, n: int, iterations: int)
 
 
 @nb.njit(cache=True, nogil=True)
-def _sym_eig3(M: np.ndarray):
-    """Eigenvalues (descending) and eigenvectors (columns) of a symmetric 3x3 matrix.
+def _sym_eig3(A: np.ndarray, V: np.ndarray) -> None:
+    """Eigen-decompose the symmetric 3x3 ``A`` in place: ``V`` gets the eigenvectors
+    (columns), ``diag(A)`` the eigenvalues, both unsorted.
 
     Cyclic Jacobi rotations until the off-diagonal part is negligible: exact to
-    rounding, and about 20x cheaper than a LAPACK call from compiled code.
+    rounding, and far cheaper than a LAPACK call from compiled code.
     """
-    A = M.copy()
-    V = np.eye(3)
+    V[:, :] = 0.0
+    V[0, 0] = V[1, 1] = V[2, 2] = 1.0
     for _ in range(32):
         off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
         scale = A[0, 0] * A[0, 0] + A[1, 1] * A[1, 1] + A[2, 2] * A[2, 2]
         if off <= 1e-30 * scale or off == 0.0:
             break
-        for p, q in ((0, 1), (0, 2), (1, 2)):
+        for r in range(3):
+            p = 0 if r < 2 else 1
+            q = 1 if r == 0 else 2
             apq = A[p, q]
             if apq == 0.0:
                 continue
@@ -113,15 +116,6 @@ def _sym_eig3(M: np.ndarray):
                 vkp, vkq = V[k, p], V[k, q]
                 V[k, p] = c * vkp - sn * vkq
                 V[k, q] = sn * vkp + c * vkq
-    w = np.array([A[0, 0], A[1, 1], A[2, 2]])
-    order = np.argsort(-w)
-    return w[order], V[:, order]
-
-
-@nb.njit(cache=True, nogil=True)
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
-                     a[0] * b[1] - a[1] * b[0]])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -136,17 +130,18 @@ def _kabsch(src: np.ndarray, dst: np.ndarray, use: np.ndarray, out: np.ndarray) 
     third singular pair, undefined for three points, is never needed.
     """
     m = 0
-    cs = np.zeros(3)
-    cd = np.zeros(3)
+    cs0 = cs1 = cs2 = cd0 = cd1 = cd2 = 0.0
     for k in range(len(use)):
         if use[k]:
             m += 1
-            for a in range(3):
-                cs[a] += src[k, a]
-                cd[a] += dst[k, a]
-    for a in range(3):
-        cs[a] /= m
-        cd[a] /= m
+            cs0 += src[k, 0]
+            cs1 += src[k, 1]
+            cs2 += src[k, 2]
+            cd0 += dst[k, 0]
+            cd1 += dst[k, 1]
+            cd2 += dst[k, 2]
+    cs = np.array([cs0 / m, cs1 / m, cs2 / m])
+    cd = np.array([cd0 / m, cd1 / m, cd2 / m])
     H = np.zeros((3, 3))
     for k in range(len(use)):
         if use[k]:
@@ -154,9 +149,23 @@ def _kabsch(src: np.ndarray, dst: np.ndarray, use: np.ndarray, out: np.ndarray) 
                 sa = src[k, a] - cs[a]
                 for b in range(3):
                     H[a, b] += sa * (dst[k, b] - cd[b])
-    _, V = _sym_eig3(H.T @ H)
-    v1 = V[:, 0].copy()
-    v2 = V[:, 1].copy()
+    A = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            A[a, b] = H[0, a] * H[0, b] + H[1, a] * H[1, b] + H[2, a] * H[2, b]
+    V = np.empty((3, 3))
+    _sym_eig3(A, V)
+    # the two largest eigenvalues' vectors
+    i1 = 0
+    for a in range(1, 3):
+        if A[a, a] > A[i1, i1]:
+            i1 = a
+    i2 = -1
+    for a in range(3):
+        if a != i1 and (i2 < 0 or A[a, a] > A[i2, i2]):
+            i2 = a
+    v1 = V[:, i1].copy()
+    v2 = V[:, i2].copy()
     u1 = H @ v1
     n1 = np.sqrt(u1 @ u1)
     u1 = u1 / n1 if n1 > 0 else np.array([1.0, 0.0, 0.0])
@@ -178,6 +187,12 @@ def _kabsch(src: np.ndarray, dst: np.ndarray, use: np.ndarray, out: np.ndarray) 
     for a in range(3):
         out[a, 3] = cd[a] - (out[a, 0] * cs[0] + out[a, 1] * cs[1] + out[a, 2] * cs[2])
     out[3, 3] = 1.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -263,6 +278,45 @@ def _class_nearest(qv, qc, cv, cc, iq, ic) -> int:
 
 
 @nb.njit(cache=True, nogil=True)
+def _verify_pair(
+    query: int, c: int, offsets: np.ndarray, centroids: np.ndarray, classes: np.ndarray,
+    vertex: np.ndarray, iterations: int, threshold: float, min_inliers: int, score_code: int,
+    seed: int, pose_out: np.ndarray,
+):
+    """Score and inlier count of one pair; the pose is written to ``pose_out``."""
+    qa, qb = offsets[query], offsets[query + 1]
+    ca, cb = offsets[c], offsets[c + 1]
+    iq = np.empty(qb - qa, dtype=np.int64)
+    ic = np.empty(qb - qa, dtype=np.int64)
+    need = max(3, min_inliers)
+    m = _class_nearest(vertex[qa:qb], classes[qa:qb], vertex[ca:cb], classes[ca:cb], iq, ic)
+    if m < need:
+        return np.inf, 0
+    src = np.empty((m, 3))
+    dst = np.empty((m, 3))
+    for p in range(m):
+        src[p] = centroids[ca + ic[p]]
+        dst[p] = centroids[qa + iq[p]]
+    samples = draw_samples(seed, query, c, m, iterations)
+    T, inl, r = ransac_from_samples(src, dst, samples, threshold)
+    n_in = int(inl.sum())
+    if n_in < need:
+        return np.inf, n_in
+    total = 0.0
+    if score_code == 0:
+        for p in range(m):
+            total += min(r[p], threshold)
+        score = total / m
+    else:
+        for p in range(m):
+            if inl[p]:
+                total += r[p]
+        score = total / n_in
+    pose_out[:, :] = T
+    return score, n_in
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
 def verify_query(
     query: int, candidates: np.ndarray, offsets: np.ndarray, centroids: np.ndarray,
     classes: np.ndarray, vertex: np.ndarray, iterations: int, threshold: float,
@@ -271,43 +325,17 @@ def verify_query(
     """Score, pose and inlier count of every candidate of one query.
 
     ``offsets`` (N + 1) slice the flat ``centroids``/``classes``/``vertex`` rows
-    of each frame. Rejected candidates get ``inf`` and a NaN pose.
+    of each frame. Rejected candidates get ``inf`` and a NaN pose. Candidates
+    run on numba's threads (``NUMBA_NUM_THREADS``); each pair draws from its own
+    sample stream, so the result does not depend on the thread count.
     """
     k = len(candidates)
     scores = np.full(k, np.inf)
     poses = np.full((k, 4, 4), np.nan)
     inliers = np.zeros(k, dtype=np.int64)
-    qa, qb = offsets[query], offsets[query + 1]
-    qv, qc, qx = vertex[qa:qb], classes[qa:qb], centroids[qa:qb]
-    iq = np.empty(qb - qa, dtype=np.int64)
-    ic = np.empty(qb - qa, dtype=np.int64)
-    need = max(3, min_inliers)
-    for t in range(k):
-        c = candidates[t]
-        ca, cb = offsets[c], offsets[c + 1]
-        m = _class_nearest(qv, qc, vertex[ca:cb], classes[ca:cb], iq, ic)
-        if m < need:
-            continue
-        src = np.empty((m, 3))
-        dst = np.empty((m, 3))
-        for p in range(m):
-            src[p] = centroids[ca + ic[p]]
-            dst[p] = qx[iq[p]]
-        samples = draw_samples(seed, query, c, m, iterations)
-        T, inl, r = ransac_from_samples(src, dst, samples, threshold)
-        n_in = int(inl.sum())
-        inliers[t] = n_in
-        if n_in < need:
-            continue
-        total = 0.0
-        if score_code == 0:
-            for p in range(m):
-                total += min(r[p], threshold)
-            scores[t] = total / m
-        else:
-            for p in range(m):
-                if inl[p]:
-                    total += r[p]
-            scores[t] = total / n_in
-        poses[t] = T
+    for t in nb.prange(k):
+        scores[t], inliers[t] = _verify_pair(
+            query, candidates[t], offsets, centroids, classes, vertex, iterations, threshold,
+            min_inliers, score_code, seed, poses[t],
+        )
     return scores, poses, inliers
