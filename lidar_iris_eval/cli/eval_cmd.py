@@ -46,7 +46,7 @@ register_flags({
 
 @click.command("eval")
 @workflow_options
-@click.argument("sequence", type=click.Path(path_type=Path))
+@click.argument("sequence", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--protocol", "protocols", type=click.Choice(["1", "2"]), multiple=True,
               required=True, help="1 (best match per query) or 2 (all pairs); may be repeated.")
 @descriptor_options
@@ -66,12 +66,15 @@ register_flags({
 @click.option("--block-pairs", type=int, default=DEFAULT_PAIR_BUDGET, show_default=True,
               help="Distances computed per block (bounds memory).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json instead of a table.")
+@click.option("--plan", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="YAML list of sequences x descriptors x protocols, all evaluated into one "
+                   "run folder with a summary table (see lidar_iris_eval/engine/plan.py).")
 @click.option("--scheduler", default="processes", show_default=True,
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
 def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
-            export_path, out, overwrite, block_pairs, as_json, reader_options, scheduler):
+            export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
@@ -84,6 +87,12 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
                         pair_budget=block_pairs)
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
+    if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
+        _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
+                       cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
+                       as_json, reader_options, scheduler)
+        return
+    sequence = sequence[0]
     descriptors = build_descriptors(descriptor_text, preset, sensor, params) \
         if descriptor_text else []
     check_request(descriptors, protocols, settings)
@@ -125,6 +134,27 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
         f"{conv.name}; results in {out}", err=table_format() != "table")
     for name, (path, count) in exported.items():
         click.echo(f"{name}: {count} accepted loops written to {path}")
+
+
+def _evaluate_many(sequences, plan, protocols, descriptor_text, preset, params, sensor,
+                   cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
+                   as_json, reader_options, scheduler) -> None:
+    """SEQUENCE... or --plan: :func:`lidar_iris_eval.cli.eval_many.evaluate_many`."""
+    from lidar_iris_eval.cli.eval_many import evaluate_many
+    from lidar_iris_eval.engine.plan import read_plan, runs_from_sequences
+
+    if plan is not None and sequences:
+        raise LirisError("--plan", "give either sequences or --plan FILE, not both")
+    if plan is None and not sequences:
+        raise LirisError("SEQUENCE", "give a sequence, several, or --plan FILE")
+    if export_path is not None or as_json:
+        raise LirisError("--export-loops/--json", "apply to a single sequence only")
+    runs = (read_plan(plan, descriptor_text, protocols) if plan is not None
+            else runs_from_sequences(sequences, descriptor_text, protocols))
+    cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
+    evaluate_many(runs, settings=settings, conv=conv, cache=cache, workers=workers, quiet=quiet,
+                  preset=preset, sensor=sensor, params=params, reader_options=reader_options,
+                  scheduler=scheduler, out=out, overwrite=overwrite)
 
 
 __all__ = ["command", "loop_export_paths"]

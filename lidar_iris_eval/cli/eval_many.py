@@ -1,0 +1,90 @@
+"""``liris eval`` on several sequences (or a ``--plan`` file): one folder, one summary.
+
+The plan format and the summary are described in :mod:`lidar_iris_eval.engine.plan`.
+Each sequence gets an ordinary run folder inside the parent (written by
+:func:`~lidar_iris_eval.evaluation.evaluate.write_run`), so ``liris show`` and
+``liris plot`` read them as usual. The parent is assembled in a temporary
+folder and renamed into place at the end; an existing folder is replaced
+only with ``--overwrite``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import click
+
+from lidar_iris_eval.cli.output import format_table
+from lidar_iris_eval.engine import check_scheduler, use_scheduler
+from lidar_iris_eval.engine.plan import (
+    SUMMARY_COLUMNS,
+    PlannedRun,
+    run_folder_names,
+    summary_csv,
+    summary_markdown,
+    summary_rows,
+    write_text_atomic,
+)
+from lidar_iris_eval.errors import LirisError
+
+
+def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int, quiet: bool,
+                  preset, sensor, params, reader_options: dict, scheduler: str,
+                  out: Path | None, overwrite: bool) -> Path:
+    """Evaluate every planned run under one scheduler; returns the parent folder."""
+    from lidar_iris_eval.cli.extract_cmd import build_descriptors, open_input
+    from lidar_iris_eval.cli.workflow import extract_all
+    from lidar_iris_eval.evaluation.evaluate import check_request, evaluate, write_run
+    from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir
+
+    check_scheduler(scheduler)
+    # everything is validated before any work: paths, descriptors, protocols, inputs
+    prepared = []
+    for run in runs:
+        if not run.sequence.exists():
+            raise LirisError(str(run.sequence), "no such sequence")
+        seq = open_input(run.sequence, reader_options)
+        descriptors = build_descriptors(run.descriptors, preset, sensor, params)
+        protocols = check_request(descriptors, run.protocols, settings)
+        for d in descriptors:
+            d.check_inputs(seq)
+        prepared.append((seq, descriptors, protocols))
+    out = Path(out) if out is not None else default_run_dir("multi")
+    check_run_dir(out, overwrite)
+    names = run_folder_names(runs, [seq.name for seq, _, _ in prepared])
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    per_run = []
+    try:
+        with use_scheduler(scheduler, workers) as engine:
+            engine_info = engine.describe() if engine is not None else {"scheduler": scheduler}
+            for name, (seq, descriptors, protocols) in zip(names, prepared, strict=True):
+                if not quiet:
+                    click.echo(f"{name}: {', '.join(d.name for d in descriptors)}, "
+                               f"protocol {' and '.join(map(str, protocols))}", err=True)
+                result = evaluate(seq, descriptors, protocols, settings, cache=cache,
+                                  workers=workers, progress=not quiet, convention=conv,
+                                  dbs=extract_all(seq, descriptors, cache, workers, quiet))
+                write_run(result, tmp / name, sensor=sensor, reader_options=reader_options,
+                          engine=engine_info)
+                per_run.append((name, result.rows))
+        rows = summary_rows(per_run)
+        write_text_atomic(tmp / "summary.csv", summary_csv(rows))
+        write_text_atomic(tmp / "summary.md", summary_markdown(rows))
+        if out.exists():  # check_run_dir allowed it: --overwrite was given
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    click.echo(format_table([{c: _short(r.get(c)) for c in SUMMARY_COLUMNS} for r in rows]))
+    click.echo(f"{len(runs)} sequence runs in {out} (summary.csv, summary.md)", err=True)
+    return out
+
+
+def _short(value):
+    if value is None or (isinstance(value, float) and value != value):
+        return "n/a"
+    return round(value, 3) if isinstance(value, float) else value
