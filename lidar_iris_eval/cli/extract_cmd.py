@@ -140,8 +140,6 @@ def command(sequence, descriptor_text, preset, params, sensor, cache_dir, worker
         raise LirisError(f"--chunk-size {chunk_size}", "must be at least 1")
     descriptors = build_descriptors(descriptor_text, preset, sensor, params)
     seq = open_input(sequence, reader_options)
-    for d in descriptors:  # every method's inputs before any work (e.g. labels/)
-        d.check_inputs(seq)
     dbs = run_extraction(seq, descriptors, cache_dir, workers, quiet, chunk_size)
     rows = [
         {

@@ -243,6 +243,10 @@ class GOSMatch(Descriptor):
             vertex=flat("vertex", np.float32, self.vertex_size),
         )
 
+    def default_candidates(self) -> int:
+        """Candidates N verified per query: the ``candidates`` parameter."""
+        return int(self.params.candidates)
+
     def retrieve(
         self, db: GOSMatchDB, query: int, n_allowed: int, k: int
     ) -> tuple[np.ndarray, np.ndarray]:
