@@ -209,3 +209,29 @@ def test_failed_run_leaves_no_folder_and_keeps_the_old_one(seq_dir, tmp_path, ca
     assert_one_line_error(code, err, "disk: full")
     assert not (tmp_path / "new").exists()
     assert not list(tmp_path.glob(".run.*")) and not list(tmp_path.glob(".new.*"))
+
+
+def test_library_evaluate_returns_what_the_cli_writes(seq_dir, tmp_path, capsys):
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate, write_run
+
+    assert run_cli(eval_args(seq_dir, tmp_path), capsys)[0] == 0
+    written = json.loads((tmp_path / "run" / "metrics.json").read_text())["results"]
+    run = evaluate(open_sequence(seq_dir), ["toy", "toy-asym"], protocols=(2, 1),
+                   settings=Settings(exclude=5), cache=tmp_path / "cache")
+    assert run.protocols == (1, 2) and run.settings.exclude_name == "custom"
+    timing = ("extract_ms_per_scan", "match_ms_per_query", "match_us_per_pair")
+    assert len(run.rows) == len(written) == 4
+    for mine, theirs in zip(run.rows, written, strict=True):
+        for key, value in theirs.items():
+            if key in timing:
+                continue
+            got = mine[key]
+            if isinstance(value, float) or value is None:
+                assert (got is None or not np.isfinite(got)) if value is None else \
+                    got == pytest.approx(value, rel=1e-12), key
+            else:
+                assert got == value, key
+    out = write_run(run, tmp_path / "lib-run")
+    assert (out / "protocol1" / "toy" / "matches.csv").is_file()
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["exclude"] == {"value": 5, "preset": "custom"}

@@ -281,3 +281,13 @@ def test_editing_a_helper_module_of_a_method_package_changes_the_key(tmp_path, m
     np.testing.assert_allclose(db.descriptors[0], 2 * seq[0].mean(0), rtol=1e-6)
     for name in [m for m in sys.modules if m.startswith("scaled_method")]:
         monkeypatch.delitem(sys.modules, name)
+
+
+def test_ragged_features_from_a_process_pool_equal_one_process(tmp_path):
+    seq = open_sequence(labelled_sequence(tmp_path / "s", n=7))
+    one = extract(seq, ClassCentroids(), cache=None).descriptors
+    two = extract(seq, ClassCentroids(), cache=tmp_path / "cache", workers=2,
+                  chunk_size=2).descriptors
+    for key in one.keys:
+        np.testing.assert_array_equal(one.offsets[key], two.offsets[key])
+        np.testing.assert_array_equal(one.values[key], two.values[key])
