@@ -164,10 +164,11 @@ def test_plot_writes_every_figure_at_fixed_size(run_dir, tmp_path, capsys):
         assert path.parent == out and path.stat().st_size > 10_000
     # 300 dpi. PR: curves reach recall 0.9, so two 3.5 × 2.6 in panels (full, zoom) plus
     # 0.13 in per legend row (3 entries in 3 columns: 1 row) + 0.1 in; timing 3.5 × 2.2 in;
-    # affinity one row of three panels 0.2 + 1.08 in; trajectory two panels 1.85 + 0.42 in
+    # affinity one row of up to five panels, 7 in wide, 1.62 in + 0.55 in for the two colour
+    # bars; trajectory two panels 1.85 + 0.42 in
     assert png_size(out / "pr_protocol1.png") == (2100, round((2.6 + 0.13 + 0.1) * 300))
     assert png_size(out / "timing.png") == (1050, 660)
-    assert png_size(out / "affinity.png") == (1050, 384)
+    assert png_size(out / "affinity.png") == (2100, round((1.62 + 0.55) * 300))
     assert png_size(out / "trajectory.png") == (1050, round((1.85 + 0.42) * 300))
 
 
@@ -298,7 +299,7 @@ def test_affinity_shows_ground_truth_and_methods_on_one_scale(run_dir):
     assert {im.get_clim() for im in images} == {(0.0, 1.0)}
     # two colour bars: binary ground truth apart from the per-method similarity
     bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
-    labels = sorted(ax.get_ylabel() for ax in bars)
+    labels = sorted(ax.get_xlabel() for ax in bars)  # horizontal bars under the panels
     assert len(bars) == 2 and labels[0].startswith("ground truth") and f"{RADIUS:g} m" in labels[0]
     assert "per method" in labels[1] and "d_min" in labels[1]
     assert image(fig, "affinity:ground-truth").get_cmap().name != \

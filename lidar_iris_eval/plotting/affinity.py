@@ -33,8 +33,9 @@ MAX_DISPLAY = 600
 CMAP = "viridis"
 #: ground truth: two greys, deliberately not on the similarity scale
 GT_CMAP = ListedColormap(["#F2F2F2", "#222222"], name="liris-gt")
-PANEL_HEIGHT = 1.08  # inches per row: a ~0.8 in square panel, its title and tick labels
-MAX_COLUMNS = 3
+PANEL_HEIGHT = 1.62  # inches per row: a ~1.2 in square panel, its two-line title, ticks
+BARS_HEIGHT = 0.55  # the two colour bars under the panels, with their labels
+MAX_COLUMNS = 5
 
 
 def block_reduce(matrix: np.ndarray, block: int, how: str) -> np.ndarray:
@@ -93,7 +94,7 @@ def affinity_grid(n_panels: int) -> tuple[int, int]:
 
 def affinity_figure_size(n_methods: int) -> tuple[float, float]:
     rows, _ = affinity_grid(n_methods + 1)
-    return style.COLUMN_WIDTH, round(0.2 + rows * PANEL_HEIGHT, 2)
+    return 2 * style.COLUMN_WIDTH, round(BARS_HEIGHT + rows * PANEL_HEIGHT, 2)
 
 
 def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray],
@@ -146,17 +147,20 @@ def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray]
                 ax.set_xlabel("frame", labelpad=1)
             if k % cols == 0:
                 ax.set_ylabel("frame", labelpad=1)
+        # each colour bar sits under the panels it describes
         where = f"< {radius:g} m" if radius is not None else "within the radius"
-        gt_bar = fig.colorbar(gt_image, ax=axes.ravel().tolist(), location="left", shrink=0.5,
-                              aspect=10, pad=0.02, ticks=[0.25, 0.75])
-        gt_bar.ax.set_yticklabels(["no", "yes"])
-        gt_bar.set_label(f"ground truth:\npair {where}", fontsize=6)
+        flat = list(axes.flat)
+        gt_bar = fig.colorbar(gt_image, ax=flat[:1], location="bottom", shrink=0.8, aspect=8,
+                              pad=0.03, ticks=[0.25, 0.75])
+        gt_bar.ax.set_xticklabels(["no", "yes"])
+        gt_bar.set_label(f"ground truth: pair {where}", fontsize=6, labelpad=1)
         gt_bar.ax.tick_params(labelsize=6, length=0)
         if sim_image is not None:
-            bar = fig.colorbar(sim_image, ax=axes.ravel().tolist(), shrink=0.85, aspect=25,
-                               pad=0.02)
-            bar.set_label("similarity 1 − (d − d_min)/(d_max − d_min),\nper method", fontsize=6)
-            bar.ax.tick_params(labelsize=6)
+            bar = fig.colorbar(sim_image, ax=flat[1:len(panels)], location="bottom",
+                               shrink=0.6, aspect=40, pad=0.03)
+            bar.set_label("similarity = 1 − (d − d_min) / (d_max − d_min), normalised per "
+                          "method over its off-diagonal pairs", fontsize=6, labelpad=1)
+            bar.ax.tick_params(labelsize=6, length=2)
         if block > 1:
             fig.suptitle(f"each pixel: the most similar pair of a {block}×{block} block",
                          fontsize=6, color="0.3")

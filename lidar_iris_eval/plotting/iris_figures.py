@@ -94,8 +94,8 @@ def iris_alignment_figure(query: np.ndarray, candidate: np.ndarray, yaw_deg: flo
     titles = [
         f"query ({_scan(qi)})",
         f"candidate ({_scan(ci)})",
-        f"candidate rolled by {_columns(shift, sectors)} "
-        f"(yaw {yaw_deg:.0f}°, distance {distance:.3f})",
+        f"candidate rolled {_columns(shift, sectors)} (yaw {yaw_deg:.0f}°, "
+        f"d = {distance:.3f})",
     ]
     with style.context():
         fig = style.new_figure(*ALIGN_SIZE)
@@ -106,7 +106,7 @@ def iris_alignment_figure(query: np.ndarray, candidate: np.ndarray, yaw_deg: flo
             ax.set_title(title, pad=2, fontsize=7)
             ax.set_ylabel("ring", fontsize=7)
         axes[-1].set_xlabel("sector (azimuth, CCW)")
-        _code_bar(fig, shown, list(axes))
+        _code_bar(fig, shown, list(axes), aspect=30)
     return fig
 
 
@@ -116,9 +116,9 @@ def _scan(label: int | str) -> str:
     return text if text in ("query", "candidate") else f"scan {text}"
 
 
-def _code_bar(fig, image, axes) -> None:
+def _code_bar(fig, image, axes, aspect: float = 12) -> None:
     """Colour bar of the pixel codes (8 height-bin bits; power scale, ticks at real codes)."""
-    bar = fig.colorbar(image, ax=axes, pad=0.01, aspect=12, ticks=[0, 2, 8, 32, 128, 255])
+    bar = fig.colorbar(image, ax=axes, pad=0.01, aspect=aspect, ticks=[0, 2, 8, 32, 128, 255])
     bar.set_label("code (height-bin bits)", fontsize=6)
     bar.ax.tick_params(labelsize=5.5, length=1.5)
 

@@ -55,7 +55,7 @@ def _extraction_panel(ax, extract_ms: Mapping[str, np.ndarray]) -> None:
         median.set_gid(f"median:{name}")
     ax.set_xticks(range(1, len(names) + 1), [_short(n) for n in names])
     _maybe_log(ax, [d[d > 0] for d in data])
-    ax.set_ylabel("extraction [ms / scan]")
+    ax.set_ylabel("extraction, CPU [ms / scan]")
     ax.grid(True, axis="y", linewidth=0.3, alpha=0.5)
 
 

@@ -121,10 +121,10 @@ def trajectory_figure(positions: np.ndarray, axes_idx: tuple[int, int], revisit:
                             color=style.OUTCOME_COLORS[kind],
                             markerfacecolor=style.OUTCOME_COLORS[kind] if filled else "none",
                             gid=f"{kind}:{name}", zorder=3)
-                revisits = (f" of {result.n_revisits} revisits" if result.n_revisits >= 0
+                revisits = (f"of {result.n_revisits} revisits · " if result.n_revisits >= 0
                             else "")
-                ax.set_title(f"{style.method_label(name)}: TP {len(result.tp)} · wrong "
-                             f"{len(result.wrong)} · missed {len(result.missed)}{revisits}\n"
+                ax.set_title(f"{style.method_label(name)}\nTP {len(result.tp)} · wrong "
+                             f"{len(result.wrong)} · missed {len(result.missed)}\n{revisits}"
                              f"false alarms {len(result.false_alarm)}", fontsize=6,
                              pad=2, linespacing=1.1)
             ax.set_aspect("equal", adjustable="datalim")
