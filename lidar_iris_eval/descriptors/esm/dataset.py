@@ -50,7 +50,14 @@ class SegmentSet:
         return self.points[self.offsets[s]:self.offsets[s + 1]]
 
     def save(self, path) -> None:
-        np.savez_compressed(path, **{k: getattr(self, k) for k in self.__dataclass_fields__})
+        """Write atomically (temporary file, then :func:`os.replace`)."""
+        import os
+        from pathlib import Path
+
+        path = Path(path)
+        tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.npz")
+        np.savez_compressed(tmp, **{k: getattr(self, k) for k in self.__dataclass_fields__})
+        os.replace(tmp, path)
 
     @classmethod
     def load(cls, path) -> SegmentSet:

@@ -15,9 +15,11 @@ A two-stage method (``descriptors/base.py``):
   (``matching.geometry.prosac_rigid``) on their centroids, sampled in
   decreasing ``q_query * q_candidate`` order, fits a rigid 6-DoF pose
   (candidate LiDAR frame -> query LiDAR frame) with inlier threshold
-  ``inlier_threshold`` metres. The k-NN is the retrieval step's (frames
-  allowed for the query); when :meth:`verify` is called alone, it is taken
-  over the frames up to the latest candidate (the query's own excluded);
+  ``inlier_threshold`` metres, at most ``iterations`` hypotheses (and at most
+  10 per distinct triplet), stopping early at ``confidence``. The k-NN is
+  the retrieval step's (frames allowed for the query); when :meth:`verify`
+  is called alone, over the frames up to the latest candidate (never the
+  query's own segments);
 * **score** ("inverse inliers"): ``1 / (1 + n_inliers) + 1e-3 * mean inlier
   residual (m)``, smaller is better; ``inf`` when fewer than ``min_inliers``
   pairs agree.
@@ -56,7 +58,8 @@ class ESMParams:
     per_segment: int = 3
     inlier_threshold: float = 0.6
     min_inliers: int = 3
-    iterations: int = 1000
+    iterations: int = 300
+    confidence: float = 0.99
     num_candidates: int = 10
     weights: str = ""  # "" = the weights shipped in the package
 
@@ -233,9 +236,11 @@ class ESM(Descriptor):
                 continue
             order = np.lexsort((np.arange(len(prod)), -prod))
             rng = np.random.default_rng([p.seed, int(query), int(cand)])
+            n = len(qa)
+            iters = int(min(p.iterations, 10 * n * (n - 1) * (n - 2) // 6))
             res = prosac_rigid(db.centroids[b], db.centroids[qa], order,
-                               threshold=p.inlier_threshold, iterations=p.iterations,
-                               min_inliers=p.min_inliers, rng=rng)
+                               threshold=p.inlier_threshold, iterations=iters,
+                               min_inliers=p.min_inliers, rng=rng, confidence=p.confidence)
             n_in = int(res.n_inliers)
             inliers[c] = n_in
             if res.success and n_in >= p.min_inliers:

@@ -136,7 +136,7 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
             opt.zero_grad()
             loss.backward()
             opt.step()
-            hist.append((float(loss), float((trip > 0).float().mean())))
+            hist.append((loss.item(), (trip > 0).float().mean().item()))
             if step % 20 == 0:
                 recent = np.mean(hist[-20:], axis=0)
                 print(f"step {step} loss {recent[0]:.4f} active {recent[1]:.2f} "
