@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import options as option_names
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_kitti_poses
 from lidar_iris_eval.io.sequence import Sequence, check_counts, hash_file_samples
 
@@ -153,7 +154,7 @@ def open_objects(
     """
     root = Path(path)
     if options:
-        raise LirisError(root, f"{', '.join(sorted(options))}: not applicable to an object "
+        raise LirisError(root, f"{option_names(options)}: not applicable to an object "
                                f"layout (bow.txt + centroids/); it takes poses and calib only")
     if not is_objects_layout(root):
         raise LirisError(root, f"not an object layout: expected {BOW_FILE} and {CENTROIDS_DIR}/")

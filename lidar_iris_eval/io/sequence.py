@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError, option, warn
+from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.io.scans import LABEL_SUFFIX, Scan, read_kitti_bin, read_npy, with_labels
 
 #: file suffix -> reader (a callable, or "module:function" imported on first use)
@@ -118,7 +118,7 @@ class Sequence(SequenceABC):
             if self.camera_poses is None:
                 return self.poses[:, :3, 3].copy()
             return self.camera_poses[:, :3, 3].copy()
-        raise LirisError(option("pose_frame", frame), "unknown pose frame; choose lidar or camera")
+        raise LirisError(f"--pose-frame {frame}", "unknown pose frame; choose lidar or camera")
 
     def resolve_pose_frame(self, frame: str) -> str:
         """The pose frame to use for ground truth, given the one requested.
@@ -225,7 +225,8 @@ def list_scans(folder: Path) -> list[Path]:
     files = [p for p in folder.iterdir() if p.suffix.lower() in SCAN_READERS and p.is_file()]
     suffixes = {p.suffix.lower() for p in files}
     if len(suffixes) > 1:
-        raise LirisError(folder, f"mixed scan formats {', '.join(sorted(suffixes))}; keep one per folder")
+        raise LirisError(folder, f"mixed scan formats {', '.join(sorted(suffixes))}; "
+                                 "keep one per folder")
     if not files:
         raise LirisError(folder, f"no scan files ({', '.join(SCAN_READERS)})")
     return sorted(files, key=lambda p: (int(p.stem) if p.stem.isdigit() else float("inf"), p.name))

@@ -97,7 +97,8 @@ def config_defaults(config: dict[str, Any]) -> dict[str, Any]:
         metrics = {d["params"].get("metric") for d in external} - {None}
         if len(metrics) > 1:
             raise LirisError("config.yaml", f"external descriptors use several metrics "
-                                            f"{sorted(metrics)}; replay them one at a time")
+                                            f"({', '.join(sorted(metrics))}); replay them "
+                                            "one at a time")
         if metrics:
             out["external_metric"] = metrics.pop()
     if config.get("sensor"):
