@@ -49,7 +49,7 @@ from lidar_iris_eval.cache import CacheKey, DescriptorCache
 from lidar_iris_eval.config import params_dict
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.features import RaggedFeatures
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, option
 
 DEFAULT_CHUNK_SIZE = 50
 
@@ -174,7 +174,7 @@ def extract(
     chunk_size : scans per chunk (unit of resumption and of pool tasks).
     """
     if workers < 1:
-        raise LirisError(f"--workers {workers}", "must be at least 1")
+        raise LirisError(option("workers", workers), "must be at least 1")
     if chunk_size < 1:
         raise ValueError("chunk_size must be positive")
     if cache is not None and not isinstance(cache, DescriptorCache):

@@ -12,9 +12,12 @@ from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.output import echo_json, echo_table
 from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_options
 from lidar_iris_eval.descriptors import Descriptor, get_descriptor
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract
 from lidar_iris_eval.io.sequence import full_scan_hashing
+
+#: library keywords -> the flags that set them, for errors raised below the CLI
+register_flags({"descriptor": "--descriptor", "workers": "--workers"})
 
 
 def parse_descriptor_specs(text: str, preset: str | None) -> list[tuple[str, str | None]]:
@@ -140,6 +143,8 @@ def command(sequence, descriptor_text, preset, params, sensor, cache_dir, worker
         raise LirisError(f"--chunk-size {chunk_size}", "must be at least 1")
     descriptors = build_descriptors(descriptor_text, preset, sensor, params)
     seq = open_input(sequence, reader_options)
+    for d in descriptors:  # every method's inputs before any work (e.g. labels/)
+        d.check_inputs(seq)
     dbs = run_extraction(seq, descriptors, cache_dir, workers, quiet, chunk_size)
     rows = [
         {

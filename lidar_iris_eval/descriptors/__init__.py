@@ -12,7 +12,7 @@ import importlib.util
 
 from lidar_iris_eval.config import descriptor_preset_values, make_params
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, option
 
 #: registry name -> "module:ClassName"; modules import lazily so that a broken
 #: or slow descriptor does not slow down the others.
@@ -51,7 +51,7 @@ def descriptor_class(name: str) -> type[Descriptor]:
     """The class registered under ``name``; an unknown name is a LirisError."""
     if name not in available_descriptors():
         raise LirisError(
-            f"--descriptor {name}",
+            option("descriptor", name),
             f"unknown descriptor; choose from {', '.join(available_descriptors())}",
         )
     module_name, class_name = _REGISTRY[name].split(":")

@@ -38,9 +38,9 @@ def gt_coordinates(
     the two ground-plane axes of that frame.
     """
     if frame not in FRAMES:
-        raise LirisError(f"--pose-frame {frame}", "unknown pose frame; choose camera or lidar")
+        raise LirisError(option("pose_frame", frame), "unknown pose frame; choose camera or lidar")
     if distance not in DISTANCES:
-        raise LirisError(f"--distance {distance}", "unknown distance; choose 3d or planar")
+        raise LirisError(option("distance", distance), "unknown distance; choose 3d or planar")
     positions = np.asarray(positions, dtype=np.float64)
     if distance == "planar":
         return positions[:, list(PLANAR_AXES[frame])]
@@ -137,7 +137,7 @@ def compute_ground_truth(
     if not 0 < radius < np.inf:  # NaN fails too
         raise LirisError(option("radius", radius), "radius must be a positive finite number")
     if exclude < 1:
-        raise LirisError(f"--exclude {exclude}", "exclusion window must be at least 1 frame")
+        raise LirisError(option("exclude", exclude), "exclusion window must be at least 1 frame")
     coords = gt_coordinates(positions, frame, distance)
     pairs = positive_pairs(coords, radius)
     return GroundTruth(

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.errors import LirisError, option, warn
 from lidar_iris_eval.io.scans import LABEL_SUFFIX, Scan, read_kitti_bin, read_npy, with_labels
 
 #: file suffix -> reader (a callable, or "module:function" imported on first use)
@@ -118,7 +118,7 @@ class Sequence(SequenceABC):
             if self.camera_poses is None:
                 return self.poses[:, :3, 3].copy()
             return self.camera_poses[:, :3, 3].copy()
-        raise LirisError(f"--pose-frame {frame}", "unknown pose frame; choose lidar or camera")
+        raise LirisError(option("pose_frame", frame), "unknown pose frame; choose lidar or camera")
 
     def resolve_pose_frame(self, frame: str) -> str:
         """The pose frame to use for ground truth, given the one requested.

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, option
 
 #: default number of distances computed per block (256 queries x 4096 frames)
 DEFAULT_PAIR_BUDGET = 1 << 20
@@ -123,7 +123,7 @@ def _best_in_block(
 
 def _check_exclude(exclude: int) -> None:
     if exclude < 1:
-        raise LirisError(f"--exclude {exclude}", "exclusion window must be at least 1 frame")
+        raise LirisError(option("exclude", exclude), "exclusion window must be at least 1 frame")
 
 
 def best_matches(
