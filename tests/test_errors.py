@@ -183,11 +183,11 @@ def test_bench_json_folder_fails_before_the_benchmark(tmp_path, capsys, monkeypa
     monkeypatch.setattr(bench_cmd, "simulated_sequence", never)
     monkeypatch.setattr(bench_cmd, "run_benchmark", never)
     (tmp_path / "out").mkdir()
-    code, _, err = run_cli(["bench", "--frames", "10", "-d", "m2dp", "--json", tmp_path / "out",
-                            "--work-dir", tmp_path / "w", "-q"], capsys)
-    assert_one_line_error(code, err, f"--json {tmp_path / 'out'}", "is a folder")
+    code, _, err = run_cli(["bench", "--frames", "10", "-d", "m2dp", "--json-out",
+                            tmp_path / "out", "--work-dir", tmp_path / "w", "-q"], capsys)
+    assert_one_line_error(code, err, f"--json-out {tmp_path / 'out'}", "is a folder")
     (tmp_path / "f").write_text("x")
-    code, _, err = run_cli(["bench", "-d", "m2dp", "--json", tmp_path / "f" / "r.json",
+    code, _, err = run_cli(["bench", "-d", "m2dp", "--json-out", tmp_path / "f" / "r.json",
                             "--work-dir", tmp_path / "w", "-q"], capsys)
     assert_one_line_error(code, err, "is a file")
     assert not (tmp_path / "w").exists()

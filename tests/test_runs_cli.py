@@ -77,7 +77,7 @@ def test_table_row_is_the_same_from_memory_and_from_json():
                                        for k, v in row.items()}))
     assert table_row(row) == table_row(from_json)
     assert render_table([row]) == render_table([from_json])
-    assert "1,234" in render_table([row]) and " - " in render_table([row])
+    assert "1,234" in render_table([row]) and " n/a " in render_table([row])
 
 
 def test_compare_a_run_with_itself_has_no_difference(seq_dir, tmp_path, capsys):

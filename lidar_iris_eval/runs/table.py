@@ -52,10 +52,10 @@ def table_row(row: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def cell(value: Any) -> str:
-    """Text of one cell: thousands separators, 4 decimals, '-' when undefined."""
+    """Text of one cell: thousands separators, 4 decimals, 'n/a' when undefined."""
     value = _plain(value)
     if value is None:
-        return "-"
+        return "n/a"  # an undefined metric, never 0 (as cli/output.format_value)
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, int):
