@@ -119,3 +119,58 @@ def test_positive_predictions_and_values(symmetric):
     descs = np.array([0.0, 1.5, 4.0, 7.25, 9.0, 10.0])
     values = positive_values(_Toy(), descs, pp, chunk=2)
     np.testing.assert_array_equal(values, np.abs(descs[pp.row] - descs[pp.col]).astype(np.float32))
+
+
+class _Asym:
+    """A non-symmetric toy distance: |a - b| + 0.01 * (a > b)."""
+
+    name = "asym"
+    symmetric = False
+
+    def pairwise(self, q, db):
+        q, db = np.asarray(q)[:, None], np.asarray(db)[None, :]
+        d = np.abs(q - db) + 0.01 * (q > db)
+        return d, np.full(d.shape, np.nan)
+
+
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_streamed_pass_equals_matrix_scoring_and_storage(symmetric, monkeypatch):
+    from lidar_iris_eval.descriptors import get_descriptor
+    from lidar_iris_eval.evaluation import streaming_pr
+    from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+    from lidar_iris_eval.evaluation.protocol2 import score_protocol2
+    from lidar_iris_eval.matching.blocks import affinity_matrix
+
+    rng = np.random.default_rng(3)
+    n = 157
+    if symmetric:
+        desc = get_descriptor("m2dp")
+        descs = np.round(rng.normal(size=(n, 192)), 1)  # coarse: tied distances
+    else:
+        desc, descs = _Asym(), np.round(rng.random(n) * 5, 2)
+    t = np.linspace(0, 4 * np.pi, n)
+    positions = np.c_[20 * np.cos(t), np.zeros(n), 20 * np.sin(t)]
+    gt = compute_ground_truth(positions, 4.0, 5)
+    full, _ = affinity_matrix(desc, descs, None, 2000)
+    reference = score_protocol2(full, gt)  # the N x N scoring
+    for storage in ("float32", "float16", "decimated", "none"):
+        monkeypatch.setattr(streaming_pr, "DECIMATED_SIDE", 40)
+        affinity, curve, matches = streaming_pr.stream_protocol2(
+            desc, descs, gt.pairs, gt.n_positive_pairs, 5, 2000, None, storage)
+        result = score_protocol2(affinity, gt, curve=curve)
+        assert_same_curve(result.curve, reduce_curve(reference.curve))
+        for key in ("ap", "f1_max", "f1_threshold", "r100p", "ep", "n_positives"):
+            assert result.metrics[key] == reference.metrics[key], key
+        assert affinity.storage == storage and affinity.passes == 1
+        assert len(matches.query) == n - 5
+        if storage == "float32":
+            np.testing.assert_array_equal(affinity.matrix, full.matrix)
+        elif storage == "float16":
+            np.testing.assert_array_equal(affinity.matrix, full.matrix.astype(np.float16))
+        elif storage == "decimated":
+            step = affinity.step
+            assert step == 4 and affinity.matrix is None
+            np.testing.assert_array_equal(affinity.decimated,
+                                          full.matrix[::step, ::step].astype(np.float16))
+        else:
+            assert affinity.matrix is None and affinity.decimated is None

@@ -43,6 +43,7 @@ R@100P are 0 and EP is undefined (no precision at the lowest recall).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -147,11 +148,16 @@ def _count_at_most(values: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
 
 
 def average_precision(curve: PRCurve) -> float:
-    """Area under the step PR curve: ``sum (R_k - R_{k-1}) * P_k``, ``R_0 = 0``."""
+    """Area under the step PR curve: ``sum (R_k - R_{k-1}) * P_k``, ``R_0 = 0``.
+
+    Summed with ``math.fsum`` (correctly rounded), so the result does not
+    depend on the order of the terms or on zero terms: the reduced curve of
+    ``pr.csv`` and protocol 2's streamed curve give bitwise the AP of the full one.
+    """
     if len(curve) == 0 or np.isnan(curve.recall).any():
         return 0.0 if len(curve) == 0 else float("nan")
     steps = np.diff(curve.recall, prepend=0.0)
-    return float(np.sum(steps * curve.precision))
+    return float(math.fsum((steps * curve.precision).tolist()))
 
 
 def max_f1(curve: PRCurve) -> tuple[float, float]:
