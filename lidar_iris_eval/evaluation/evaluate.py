@@ -125,7 +125,10 @@ class Evaluation:
             "version": __version__,
             "created": self.created,
             "wall_s": self.wall_s,
-            "host": {"python": sys.version.split()[0], "platform": platform.platform()},
+            "host": {"python": sys.version.split()[0], "platform": platform.platform(),
+                     # the conditions of the timings: wall-clock matching slows on a busy host
+                     "cpu_count": os.cpu_count(),
+                     "load_average_1_5_15min": [round(v, 2) for v in os.getloadavg()]},
             "sequence": config["sequence"],
             "conventions": {
                 "radius": config["radius"],
