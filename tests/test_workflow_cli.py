@@ -134,3 +134,12 @@ def test_eval_under_peer_conventions(seq, tmp_path, capsys):
     assert "neither true nor false" in c["not_revisit_band"]
     p1 = next(r for r in metrics["results"] if r["protocol"] == 1)
     assert p1["n_queries"] == 70 - 25  # times.txt is 0.1 s apart: queries from t >= 2.5 s
+
+
+def test_eval_without_sequence_or_protocol_is_one_line(seq, tmp_path, capsys):
+    code, _, err = run_cli(["eval"], capsys)
+    assert_one_line_error(code, err, "SEQUENCE", "--config")
+    code, _, err = run_cli(["eval", seq, "-d", "m2dp"], capsys)
+    assert_one_line_error(code, err, "--protocol")
+    code, _, err = run_cli(["eval", "--config", tmp_path / "nope.yaml"], capsys)
+    assert_one_line_error(code, err, "nope.yaml", "not found")

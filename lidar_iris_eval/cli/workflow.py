@@ -33,6 +33,9 @@ def _load_config(ctx: click.Context, param: click.Parameter, value):
     from lidar_iris_eval.runs.replay import config_defaults, read_config
 
     defaults = config_defaults(read_config(value))
+    for p in ctx.command.params:  # a SEQUENCE... argument takes a list
+        if p.name in defaults and p.nargs == -1 and isinstance(defaults[p.name], str):
+            defaults[p.name] = [defaults[p.name]]
     ctx.default_map = {**(ctx.default_map or {}), **defaults}
     ctx.meta.setdefault(_META, {})["config"] = str(value)
     return value
@@ -66,9 +69,10 @@ def workflow_options(func):
         meta["externals"] = list(kwargs.pop("externals") or ())
         meta["external_metric"] = kwargs.pop("external_metric")
         meta["format"] = kwargs.pop("fmt")
-        if kwargs.get("sequence") is None:
+        planned = kwargs.get("plan") is not None  # a plan file names its own runs
+        if not kwargs.get("sequence") and not planned:
             raise LirisError("liris eval", "give a SEQUENCE (or --config RUN/config.yaml)")
-        if not kwargs.get("protocols"):
+        if not kwargs.get("protocols") and not planned:
             raise LirisError("liris eval", "give --protocol 1 and/or --protocol 2")
         # a descriptor list given here replaces the recorded one, with its parameters
         if ctx.get_parameter_source("descriptor_text") == ParameterSource.COMMANDLINE:
@@ -80,7 +84,7 @@ def workflow_options(func):
                 ctx.get_parameter_source("descriptor_text") == ParameterSource.DEFAULT_MAP:
             kwargs["descriptor_text"] = None
             kwargs["params"] = ()
-        if not kwargs.get("descriptor_text") and not meta["externals"]:
+        if not kwargs.get("descriptor_text") and not meta["externals"] and not planned:
             raise LirisError("--descriptor", "give at least one descriptor (or --external)")
         return func(*args, **kwargs)
 
