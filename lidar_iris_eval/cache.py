@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error, warn
+from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 
 CACHE_FORMAT = 2  # 2: extract_s is per-thread CPU time, compilation excluded
 ENV_VAR = "LIRIS_CACHE_DIR"
@@ -115,7 +116,7 @@ def write_arrays(path: Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]
     header = {**meta, "checksum": arrays_checksum(arrays)}
     blob = np.frombuffer(json.dumps(header, sort_keys=True).encode(), dtype=np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=temp_prefix(path.name))
     try:
         os.fchmod(fd, 0o666 & ~umask())  # mkstemp makes 0600 whatever the umask
         with os.fdopen(fd, "wb") as handle:
@@ -183,8 +184,13 @@ class DescriptorCache:
         return self._load_verified(self.path(key), key)
 
     def check_writable(self) -> None:
-        """Raise a LirisError now (before any work) if the cache cannot be written."""
+        """Raise a LirisError now (before any work) if the cache cannot be written.
+
+        Also removes temporary files left by writers that were killed (their
+        process is gone), so a SIGKILL leaves no debris for long.
+        """
         check_writable_dir(self.root, "descriptor cache folder")
+        remove_stale_temps(self.root)
 
     def writable(self, key: CacheKey) -> bool:
         """False when ``key``'s file exists but may not be read: it is left alone."""

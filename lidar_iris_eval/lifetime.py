@@ -16,9 +16,13 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import re
+import shutil
 import signal
+import socket
 import sys
 import threading
+from pathlib import Path
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 POLL_SECONDS = 1.0
@@ -60,3 +64,39 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+# --- temporary files and folders that outlive a killed process -----------------------
+
+#: this host, as it appears in temporary names (only its own leftovers are removed)
+HOST = "".join(c if c.isalnum() else "_" for c in socket.gethostname()) or "host"
+_TEMP = re.compile(r"^\..+\.tmp-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+(\.\w+)?$")
+
+
+def temp_prefix(name: str) -> str:
+    """``.<name>.tmp-<host>-<pid>-``: a temporary name that says who owns it."""
+    return f".{name}.tmp-{HOST}-{os.getpid()}-"
+
+
+def remove_stale_temps(folder: str | os.PathLike) -> list[Path]:
+    """Delete temporary files and folders (:func:`temp_prefix`) whose process is gone.
+
+    Only entries made on this host by a process that no longer exists are
+    removed (a live process, or one on another host sharing the disk, is left
+    alone). Returns what was removed.
+    """
+    removed: list[Path] = []
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        match = _TEMP.match(entry.name)
+        if match is None or match["host"] != HOST or _alive(int(match["pid"])):
+            continue
+        if entry.is_dir():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+        removed.append(entry)
+    return removed

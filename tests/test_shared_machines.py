@@ -150,9 +150,7 @@ def _dead_pid() -> int:
 
 
 def test_stale_temporary_runs_are_removed_live_ones_kept(tmp_path):
-    from lidar_iris_eval.evaluation import report
-
-    host = report._HOST
+    from lidar_iris_eval.lifetime import HOST as host
     stale = tmp_path / f".old.tmp-{host}-{_dead_pid()}-abc123"
     live = tmp_path / f".busy.tmp-{host}-{os.getpid()}-def456"
     elsewhere = tmp_path / f".far.tmp-otherhost-{_dead_pid()}-ghi789"
@@ -164,6 +162,20 @@ def test_stale_temporary_runs_are_removed_live_ones_kept(tmp_path):
         run.write_text("a.txt", "x")
     assert not stale.exists()
     assert live.exists() and elsewhere.exists() and mine.exists()
+
+
+def test_stale_cache_temporaries_are_removed(seq_dir, tmp_path):
+    from lidar_iris_eval.lifetime import HOST
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    stale = cache / f".x.npz.tmp-{HOST}-{_dead_pid()}-k2j3h4"  # a writer killed mid-write
+    live = cache / f".y.npz.tmp-{HOST}-{os.getpid()}-a1b2c3"
+    stale.write_bytes(b"PK half")
+    live.write_bytes(b"PK busy")
+    extract(open_sequence(seq_dir), ToyHist(), cache=cache)
+    assert not stale.exists() and live.exists()
+    assert not [p for p in cache.iterdir() if ".tmp-" in p.name and p != live]
 
 
 def test_default_run_names_do_not_collide(tmp_path):

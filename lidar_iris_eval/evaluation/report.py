@@ -19,9 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 import shutil
-import socket
 import tempfile
 from datetime import datetime
 from pathlib import Path
@@ -36,6 +34,7 @@ from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error
 from lidar_iris_eval.evaluation.metrics import PRCurve, reduce_curve
 from lidar_iris_eval.evaluation.protocol1 import Protocol1Result
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result
+from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 
 #: the metric columns every result row carries, in ``metrics.csv`` order
 SUMMARY_KEYS = ("ap", "f1_max", "f1_threshold", "r100p", "ep")
@@ -83,8 +82,8 @@ class RunWriter:
         self.out = check_run_dir(out, overwrite)
         self.overwrite = overwrite
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temp_runs(self.out.parent)
-        prefix = f".{self.out.name}.tmp-{_HOST}-{os.getpid()}-"
+        remove_stale_temps(self.out.parent)
+        prefix = temp_prefix(self.out.name)
         self.tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=self.out.parent))
         os.chmod(self.tmp, 0o777 & ~umask())  # mkdtemp makes 0700 whatever the umask
 
@@ -133,42 +132,6 @@ class RunWriter:
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return self.out
-
-
-_HOST = "".join(c if c.isalnum() else "_" for c in socket.gethostname()) or "host"
-_TEMP_RUN = re.compile(r"^\..+\.tmp-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+$")
-
-
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, owned by someone else
-        return True
-    return True
-
-
-def remove_stale_temp_runs(folder: Path) -> list[Path]:
-    """Delete temporary run folders in ``folder`` whose owning process is gone.
-
-    Only folders created on this host by a process that no longer exists are
-    removed (a live process, or one on another host sharing the disk, is left
-    alone). Returns what was removed.
-    """
-    removed = []
-    try:
-        entries = list(folder.iterdir())
-    except OSError:
-        return removed
-    for entry in entries:
-        match = _TEMP_RUN.match(entry.name)
-        if (match is None or match["host"] != _HOST or not entry.is_dir()
-                or _process_alive(int(match["pid"]))):
-            continue
-        shutil.rmtree(entry, ignore_errors=True)
-        removed.append(entry)
-    return removed
 
 
 def pr_table(curve: PRCurve) -> dict[str, np.ndarray]:
