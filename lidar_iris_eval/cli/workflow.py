@@ -84,6 +84,10 @@ def workflow_options(func):
                 ctx.get_parameter_source("descriptor_text") == ParameterSource.DEFAULT_MAP:
             kwargs["descriptor_text"] = None
             kwargs["params"] = ()
+        several = planned or len(kwargs.get("sequence") or ()) > 1
+        if meta["externals"] and several:
+            raise LirisError("--external", "one descriptor file fits one sequence; evaluate "
+                                           "each sequence with its own --external")
         if not kwargs.get("descriptor_text") and not meta["externals"] and not planned:
             raise LirisError("--descriptor", "give at least one descriptor (or --external)")
         return func(*args, **kwargs)
