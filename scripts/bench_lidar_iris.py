@@ -6,6 +6,7 @@ Usage::
     .venv/bin/python scripts/bench_lidar_iris.py --frames 1000   # smaller database
     .venv/bin/python scripts/bench_lidar_iris.py --no-full       # skip protocol 1/2 runs
     .venv/bin/python scripts/bench_lidar_iris.py --harmonics     # phase-correlation study
+    .venv/bin/python scripts/bench_lidar_iris.py --search        # shift searches: cost, misses
 
 Figures (medians where repeated):
 
@@ -254,6 +255,61 @@ def harmonics_study(scans, cases: int = 120) -> None:
             )
 
 
+def protocol2_seconds(desc, db, block: int) -> tuple[float, float]:
+    """Wall and CPU seconds of the protocol 2 affinity (each unordered pair once)."""
+    n = len(db)
+    t, c = time.perf_counter(), time.process_time()
+    for a in range(0, n, block):
+        b = min(n, a + block)
+        desc.pairwise(db[a:b], db[:b])
+    return time.perf_counter() - t, time.process_time() - c
+
+
+def search_study(scans, frames: int, block: int, rounds: int = 2, cases: int = 400) -> None:
+    """Shift searches side by side: protocol 2 cost as a ratio, and how often each
+    reaches the exhaustive-best shift on perturbed real scans (rotated + translated).
+
+    Both searches run alternately on the same database in the same process, so
+    the ratio is fair on a shared machine; the minimum of ``rounds`` runs is kept.
+    """
+    variants = {
+        "phase": dict(shift_search="phase"),
+        "phase+refine": dict(shift_search="phase+refine"),
+        "refine, 3 peaks": dict(shift_search="phase+refine", refine_peaks=3),
+    }
+    searches = tuple(variants)
+    descs = {s: get_descriptor("lidar-iris", **kw) for s, kw in variants.items()}
+    db = build_database(descs["phase"], scans, frames)
+    for d in descs.values():
+        d.pairwise(db[:2], db[:2])  # compile
+    best = {s: (np.inf, np.inf) for s in searches}
+    for _ in range(rounds):
+        for s, d in descs.items():
+            wall, cpu = protocol2_seconds(d, db, block)
+            best[s] = (min(best[s][0], wall), min(best[s][1], cpu))
+    base = best["phase"]
+    print(f"\n== protocol 2 on {frames} frames, {rounds} alternating rounds (min), load "
+          f"{os.getloadavg()[0]:.1f}")
+    for s in searches:
+        wall, cpu = best[s]
+        print(f"{s:13s} {wall:7.1f} s wall ({wall / base[0]:.2f}x), {cpu:7.1f} s CPU "
+              f"({cpu / base[1]:.2f}x)")
+    rng = np.random.default_rng(7)
+    oracle = get_descriptor("lidar-iris", shift_search="exhaustive")
+    pert = [(i % len(scans), perturb(scans[i % len(scans)], rng)) for i in range(cases)]
+    base_d = [oracle.compute(s) for s in scans]
+    cand = [oracle.compute(pts) for _, pts in pert]
+    pairs = [(base_d[b], c) for (b, _), c in zip(pert, cand, strict=True)]
+    exact = np.array([oracle.distance(a, c)[0] for a, c in pairs])
+    print(f"\n== {cases} rotated + translated (<= 4 m) + subsampled copies of the real scans")
+    for s in searches:
+        got = np.array([descs[s].distance(a, c)[0] for a, c in pairs])
+        excess = got - exact
+        print(f"{s:13s} exhaustive-best shift on {np.mean(excess <= 0) * 100:5.1f}% of pairs, "
+              f"within 0.01 on {np.mean(excess <= 0.01) * 100:5.1f}%, "
+              f"max excess {excess.max():.4f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=4541)
@@ -263,12 +319,17 @@ def main() -> None:
     parser.add_argument("--baseline-pairs", type=int, default=200)
     parser.add_argument("--no-full", action="store_true", help="skip the protocol 1/2 runs")
     parser.add_argument("--harmonics", action="store_true", help="only the harmonics study")
+    parser.add_argument("--search", action="store_true",
+                        help="only the shift-search comparison (cost ratio, misses)")
     args = parser.parse_args()
 
     print(f"load average at start: {os.getloadavg()}")
     scans = load_scans()
     if args.harmonics:
         harmonics_study(scans)
+        return
+    if args.search:
+        search_study(scans, args.frames, args.block)
         return
     desc = get_descriptor("lidar-iris", preset=args.preset)
     bench_extraction(desc, scans)

@@ -24,7 +24,7 @@ from lidar_iris_eval.simulate.trajectories import ROUTES
               help="Revisit pattern: same direction, reverse direction, or both.")
 @click.option("--azimuth-steps", type=int,
               help="Rays per beam and turn (default: the preset's; sensor full resolution "
-              "is 2048 for hdl64, 1800 for vlp16).")
+              "is 2048 for hdl64, 1800 for vlp16; see lidar_iris_eval/sensors.py).")
 @click.option("--seed", type=int, help="Random seed; the same seed gives identical files.")
 @click.option("--moving-cars/--no-moving-cars", default=None,
               help="Add traffic that differs between passes.")

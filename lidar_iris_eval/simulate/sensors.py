@@ -1,12 +1,18 @@
-"""Spinning LiDAR models and the per-scan ray caster.
+"""LiDAR models and the per-scan ray caster.
 
-``hdl64`` mimics the Velodyne HDL-64E of KITTI: two blocks of 32 lasers, the
-upper from +2 deg to -8.33 deg (about 1/3 deg apart), the lower from -8.83 deg
-to -24.9 deg (about 1/2 deg apart), mounted 1.73 m above the road, 2048
-azimuth steps per turn (KITTI scans have about 120k points). ``vlp16`` mimics
-a Velodyne VLP-16: 16 lasers every 2 deg over +/-15 deg, about 2 m high, 1800
-steps per turn at 10 Hz. Both add Gaussian range noise, random dropout
-(heavier at grazing incidence and long range) and a maximum range.
+Every sensor preset of :mod:`lidar_iris_eval.sensors` (data-sheet beam layout,
+fields of view, range, point rate; a chosen mounting height) becomes a
+:class:`SensorModel`. ``hdl64`` mimics the Velodyne HDL-64E of KITTI: two
+blocks of 32 lasers, the upper from +2 deg to -8.33 deg (about 1/3 deg apart),
+the lower from -8.83 deg to -24.9 deg (about 1/2 deg apart), mounted 1.73 m
+above the road, 2048 azimuth steps per turn (KITTI scans have about 120k
+points); its range is cut at 80 m like KITTI's scans. ``vlp16``: 16 lasers
+every 2 deg over +/-15 deg, 2 m high, 1800 steps per turn at 10 Hz. The Livox
+scanners (``mid360``, ``avia``) are non-repetitive: a frame is a random subset
+(the data-sheet points per frame) of a fine grid over their field of view,
+and the Avia keeps only rays within its 70.4 deg horizontal field. All add
+Gaussian range noise, random dropout (heavier at grazing incidence and long
+range) and a maximum range.
 
 Points are returned in the sensor frame (x forward, y left, z up), like KITTI
 ``velodyne/*.bin``. The scan is instantaneous (no motion distortion).
@@ -19,6 +25,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.sensors import SENSORS as SENSOR_SPECS
+from lidar_iris_eval.sensors import SensorSpec
 from lidar_iris_eval.simulate.ground import REGION_LABEL, Ground, cast_ground
 from lidar_iris_eval.simulate.labels import REFLECTIVITY
 from lidar_iris_eval.simulate.raycast import (
@@ -42,25 +50,23 @@ class SensorModel:
     range_noise: float = 0.02  # metres, 1 sigma
     dropout: float = 0.02  # base probability of a missing return
     intensity_noise: float = 0.03
+    horizontal_fov: float = 360.0  # degrees, centred on +x
+    points_per_frame: int | None = None  # non-repetitive scanners: rays kept per frame
 
     @property
     def grid(self) -> RayGrid:
         return RayGrid(np.deg2rad(np.sort(np.asarray(self.elevation_deg))), self.azimuth_steps)
 
 
-def _hdl64_elevations() -> tuple[float, ...]:
-    upper = np.linspace(2.0, -8.33, 32)
-    lower = np.linspace(-8.83, -24.9, 32)
-    return tuple(float(v) for v in np.concatenate([upper, lower]))
+def _model(spec: SensorSpec) -> SensorModel:
+    return SensorModel(
+        spec.name, spec.elevation_deg, spec.azimuth_steps, spec.mount_height, spec.max_range,
+        spec.min_range, spec.range_noise, 0.02, horizontal_fov=spec.horizontal_fov,
+        points_per_frame=spec.points_per_frame,
+    )
 
 
-SENSORS: dict[str, SensorModel] = {
-    "hdl64": SensorModel("hdl64", _hdl64_elevations(), 2048, 1.73, 80.0, 2.5, 0.02, 0.02),
-    "vlp16": SensorModel(
-        "vlp16", tuple(float(v) for v in np.linspace(-15.0, 15.0, 16)), 1800, 2.0, 100.0,
-        1.0, 0.03, 0.02,
-    ),
-}
+SENSORS: dict[str, SensorModel] = {name: _model(spec) for name, spec in SENSOR_SPECS.items()}
 
 
 def get_sensor(name: str, azimuth_steps: int | None = None) -> SensorModel:
@@ -73,6 +79,29 @@ def get_sensor(name: str, azimuth_steps: int | None = None) -> SensorModel:
             raise LirisError("--azimuth-steps", f"must be at least 8, got {azimuth_steps}")
         sensor = replace(sensor, azimuth_steps=int(azimuth_steps))
     return sensor
+
+
+def _frame_rays(sensor: SensorModel, dirs_s: np.ndarray, rng) -> np.ndarray:
+    """Rays a limited-field or non-repetitive scanner fires in one frame (bool per ray).
+
+    Rays outside the horizontal field are never fired. A non-repetitive
+    scanner fires ``points_per_frame`` rays drawn at random among the rest (a
+    uniform stand-in for the rosette); without ``rng``, an even stride.
+    """
+    fired = np.ones(len(dirs_s), dtype=bool)
+    if sensor.horizontal_fov < 360.0:
+        azimuth = np.degrees(np.arctan2(dirs_s[:, 1], dirs_s[:, 0]))
+        fired &= np.abs(azimuth) <= sensor.horizontal_fov / 2
+    if sensor.points_per_frame is not None:
+        inside = np.nonzero(fired)[0]
+        n = min(sensor.points_per_frame, len(inside))
+        if rng is None:
+            chosen = inside[np.linspace(0, len(inside) - 1, n).astype(np.int64)]
+        else:
+            chosen = rng.choice(inside, size=n, replace=False)
+        fired[:] = False
+        fired[chosen] = True
+    return fired
 
 
 _REFL_LUT = np.zeros(max(REFLECTIVITY) + 1)
@@ -116,6 +145,8 @@ def simulate_scan(
     use_p = t_p < t_g
     t = np.where(use_p, t_p, t_g)
     valid = np.isfinite(t) & (t >= sensor.min_range)
+    if sensor.horizontal_fov < 360.0 or sensor.points_per_frame is not None:
+        valid &= _frame_rays(sensor, dirs_s, rng)
     idx = np.nonzero(valid)[0]
     t, use_p = t[idx], use_p[idx]
     d_w = dirs_w[idx]
