@@ -110,3 +110,142 @@ def get_spec(name: str) -> SensorSpec:
     if name not in SENSORS:
         raise LirisError("--sensor", f"unknown sensor {name!r}; choose from {', '.join(SENSORS)}")
     return SENSORS[name]
+
+
+# ------------------------------------------------------------ recognising a sensor
+
+#: scans read to guess the sensor and to check a preset against the data
+SAMPLE_SCANS = 3
+#: degrees of lowest-beam mismatch that cost as much as a factor 2 in beam count
+_EDGE_SCALE = 1.5
+
+
+@dataclass(frozen=True)
+class ScanGeometry:
+    """What the guess looks at in one scan (degrees)."""
+
+    lowest: float  # elevation of the lowest beam (0.2nd percentile of all points)
+    highest_far: float  # 99.8th percentile of the elevation of points beyond 20 m
+    beams: int  # peaks of the elevation histogram of points beyond 3 m (0.05 deg bins)
+    coverage: int  # 1-degree azimuth bins holding at least one point
+
+    def describe(self) -> str:
+        return (f"elevations {self.lowest:+.1f}..{self.highest_far:+.1f} deg, about "
+                f"{self.beams} beams, {self.coverage} deg of azimuth")
+
+
+def scan_geometry(points: np.ndarray) -> ScanGeometry:
+    """Elevation range, beam count and azimuth coverage of one scan (sensor frame)."""
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) < 100:
+        return ScanGeometry(0.0, 0.0, 0, 0)
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    elevation = np.degrees(np.arctan2(xyz[:, 2], r))
+    lowest = float(np.percentile(elevation, 0.2))
+    far = elevation[r > 20.0]
+    highest = float(np.percentile(far if len(far) > 50 else elevation, 99.8))
+    beams = 0
+    mid = elevation[r > 3.0]
+    if len(mid) > 100:
+        counts, _ = np.histogram(mid, bins=np.arange(lowest - 0.5, mid.max() + 0.5, 0.05))
+        smooth = np.convolve(counts, np.ones(3) / 3, mode="same")
+        floor = 0.1 * np.percentile(smooth[smooth > 0], 90)
+        peak = (smooth > np.roll(smooth, 1)) & (smooth >= np.roll(smooth, -1)) & (smooth > floor)
+        beams = int(peak.sum())
+    azimuth = np.floor(np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))).astype(int) % 360
+    return ScanGeometry(lowest, highest, beams, len(np.unique(azimuth)))
+
+
+def sensor_score(spec: SensorSpec, geo: ScanGeometry) -> float:
+    """Mismatch of a preset with a scan's geometry (0 = perfect; lower is better).
+
+    The lowest beam always hits the ground near the vehicle, so its elevation
+    is the strongest cue (1.5 deg of difference costs 1); the beam count
+    separates presets with the same lowest beam (a factor 2 costs 1; not used
+    for non-repetitive scanners, which have no beams); far points above the
+    preset's top beam (0.5 deg allowed for laser offsets) and a horizontal
+    field that does not match the coverage (under 300 deg) rule a preset out.
+    """
+    low, high = spec.vertical_fov
+    score = abs(geo.lowest - low) / _EDGE_SCALE
+    score += max(0.0, geo.highest_far - high - 0.5) / _EDGE_SCALE
+    # an empty top of the field is weak evidence (open sky), but streets have
+    # walls and trees that rise above the sensor within 20-80 m
+    score += max(0.0, high - 0.5 - geo.highest_far) / 8.0
+    if spec.pattern == "spinning" and geo.beams > 0:
+        score += abs(np.log2(geo.beams / spec.channels))
+    if (geo.coverage < 300) != (spec.horizontal_fov < 300):
+        score += 10.0
+    return float(score)
+
+
+def guess_sensor(scans: list[np.ndarray]) -> tuple[str, str]:
+    """The preset that fits the scans best, and a one-line reason.
+
+    Scores (:func:`sensor_score`) are summed over the scans.
+    """
+    geos = [scan_geometry(s) for s in scans]
+    totals = {name: sum(sensor_score(spec, g) for g in geos) for name, spec in SENSORS.items()}
+    ranked = sorted(totals, key=totals.get)
+    best, second = ranked[0], ranked[1]
+    reason = (f"{geos[0].describe()} in the first scan; best fit {SENSORS[best].model} "
+              f"(mismatch {totals[best] / len(geos):.2f}, next {second} "
+              f"{totals[second] / len(geos):.2f})")
+    return best, reason
+
+
+def fit_warnings(scans: list[np.ndarray], z_low: float, z_high: float,
+                 outside_limit: float = 0.10) -> list[str]:
+    """Problems of a preset with these scans: points outside the height range, partial turns.
+
+    LiDAR Iris clips heights outside ``z_low..z_high`` into its end bins, so a
+    wrong range loses the height code silently; a scan covering less than a
+    full turn leaves image columns empty (the yaw search still works, on fewer
+    columns).
+    """
+    problems = []
+    outside = []
+    coverage = []
+    for scan in scans:
+        z = np.asarray(scan)[:, 2]
+        z = z[np.isfinite(z)]
+        outside.append(float(np.mean((z < z_low) | (z > z_high))) if len(z) else 0.0)
+        coverage.append(scan_geometry(scan).coverage)
+    worst = max(outside, default=0.0)
+    if worst > outside_limit:
+        problems.append(
+            f"{worst:.0%} of a scan's points lie outside the LiDAR Iris height range "
+            f"{z_low:g}..{z_high:g} m (more than {outside_limit:.0%}): pick the --sensor "
+            f"preset of your LiDAR or set lidar-iris.z_low/z_high"
+        )
+    if min(coverage, default=360) < 355:
+        problems.append(
+            f"the scans cover only about {min(coverage)} of 360 degrees of azimuth: yaw-"
+            f"invariant descriptors see a partial turn (fine for a forward-looking sensor "
+            f"such as the Livox Avia, wrong for a spinning one)"
+        )
+    return problems
+
+
+def sample_scans(seq, count: int = SAMPLE_SCANS) -> list[np.ndarray]:
+    """The first ``count`` scans of a sequence as (N, 3) arrays."""
+    return [np.asarray(seq[i])[:, :3] for i in range(min(count, len(seq)))]
+
+
+def resolve_sensor(sensor: str | None, open_sequence) -> str | None:
+    """``sensor`` itself, or for ``"auto"`` the preset guessed from the first scans.
+
+    ``open_sequence`` is called (only for ``"auto"``) to get the sequence; the
+    choice and its reason are reported as a warning line.
+    """
+    if sensor != "auto":
+        return sensor
+    from lidar_iris_eval.errors import LirisError, warn
+
+    scans = sample_scans(open_sequence())
+    if not scans:
+        raise LirisError("--sensor auto", "the sequence has no scans to look at")
+    name, reason = guess_sensor(scans)
+    warn("--sensor auto", f"chose {name} ({reason})")
+    return name

@@ -34,6 +34,7 @@ from lidar_iris_eval.evaluation.evaluate import (
 from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir, json_ready
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 from lidar_iris_eval.runs.table import render_table
+from lidar_iris_eval.sensors import resolve_sensor
 
 #: library keywords (Settings, evaluate) -> the flags that set them, for error messages
 register_flags({
@@ -93,6 +94,7 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
                        as_json, reader_options, scheduler)
         return
     sequence = sequence[0]
+    sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
     descriptors = build_descriptors(descriptor_text, preset, sensor, params) \
         if descriptor_text else []
     check_request(descriptors, protocols, settings)

@@ -15,6 +15,7 @@ from lidar_iris_eval.descriptors import Descriptor, get_descriptor
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract
 from lidar_iris_eval.io.sequence import full_scan_hashing
+from lidar_iris_eval.sensors import SENSORS, resolve_sensor
 
 #: library keywords -> the flags that set them, for errors raised below the CLI
 register_flags({"descriptor": "--descriptor", "workers": "--workers"})
@@ -60,6 +61,8 @@ def build_descriptors(text: str, preset: str | None, sensor: str | None = None,
 
     Everything is validated (names, presets, parameter keys) before any work.
     """
+    if sensor == "auto":  # resolved per sequence (resolve_sensor) before this point
+        raise LirisError("--sensor auto", "works with one sequence; name the sensor preset")
     specs = parse_descriptor_specs(text, preset)
     overrides = parse_param_overrides(params, [name for name, _ in specs])
     return [
@@ -92,9 +95,10 @@ def descriptor_options(func):
                      help="Descriptor preset for all descriptors (default: each one's first)."),
         click.option("--param", "params", multiple=True, metavar="NAME.KEY=VALUE",
                      help="Override one descriptor parameter, e.g. esf.seed=3 (repeatable)."),
-        click.option("--sensor", type=click.Choice(["hdl64", "vlp16"]), default="hdl64",
+        click.option("--sensor", type=click.Choice([*SENSORS, "auto"]), default="hdl64",
                      show_default=True,
-                     help="Sensor-specific preset values (e.g. LiDAR Iris height range)."),
+                     help="Sensor preset (e.g. LiDAR Iris height range; lidar_iris_eval/"
+                          "sensors.py); auto guesses it from the first scans."),
         click.option("--cache-dir", type=click.Path(path_type=Path), default=None,
                      help="Descriptor cache folder [default: $LIRIS_CACHE_DIR or ./.liris-cache]."),
         click.option("--workers", type=int, default=1, show_default=True,
@@ -141,6 +145,7 @@ def command(sequence, descriptor_text, preset, params, sensor, cache_dir, worker
         raise LirisError(f"--workers {workers}", "must be at least 1")
     if chunk_size < 1:
         raise LirisError(f"--chunk-size {chunk_size}", "must be at least 1")
+    sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
     descriptors = build_descriptors(descriptor_text, preset, sensor, params)
     seq = open_input(sequence, reader_options)
     for d in descriptors:  # every method's inputs before any work (e.g. labels/)

@@ -102,8 +102,11 @@ import numpy as np
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.lidar_iris import kernels
 from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.sensors import fit_warnings, sample_scans
 
 _MODES = {"same": kernels.MODE_SAME, "reverse": kernels.MODE_REVERSE, "both": kernels.MODE_BOTH}
+#: (params, sequence path) pairs already checked against the scans (warn once)
+_FIT_CHECKED: set = set()
 _SEARCHES = {
     "phase": kernels.SEARCH_PHASE,
     "phase+refine": kernels.SEARCH_REFINE,
@@ -550,6 +553,25 @@ class LidarIris(Descriptor):
     name: ClassVar[str] = "lidar-iris"
     params_type: ClassVar[type] = LidarIrisParams
     symmetric: ClassVar[bool] = True
+
+    def check_inputs(self, sequence) -> None:
+        """The base checks, then a warning when the first scans do not fit the preset.
+
+        More than 10 % of a scan's points outside ``z_low..z_high`` (clipped into
+        the end bins, so the height code is lost), or scans covering less than a
+        full turn, are reported once per sequence and parameter set.
+        """
+        super().check_inputs(sequence)
+        key = (self.params, str(getattr(sequence, "path", id(sequence))))
+        if key in _FIT_CHECKED or not hasattr(sequence, "__getitem__"):
+            return
+        _FIT_CHECKED.add(key)
+        try:
+            scans = sample_scans(sequence)
+        except (LirisError, OSError):
+            return  # unreadable scans are reported where they are read
+        for problem in fit_warnings(scans, self.params.z_low, self.params.z_high):
+            warn(getattr(sequence, "path", "lidar-iris"), problem)
 
     def compute(self, points: np.ndarray) -> np.ndarray:
         """Structured-scalar descriptor of one scan (image, packed T and M, row spectra)."""
