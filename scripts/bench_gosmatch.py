@@ -16,7 +16,7 @@ Two jobs, both outside the test suite:
     ``two_stage_matches``), wall and CPU time of each stage after compiling the
     kernels, plus the compiled verification against the NumPy reference
     (``GOSMatch.verify_reference`` around ``geometry.ransac_rigid``) on a sample
-    of queries in the same run. Numba threads: ``NUMBA_NUM_THREADS``.
+    of queries in the same run. Matching runs on one thread.
 
 The machine may be shared: the report holds the load average before and after.
 """
@@ -208,7 +208,7 @@ def speed(args) -> None:
     report = {
         "sequence": str(args.seq), "frames": len(seq), "preset": method.preset,
         "params": {f: getattr(method.params, f) for f in method.params.__dataclass_fields__},
-        "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count() or 1)),
+        "threads": 1,
         "extract_wall_s": t1 - t0, "extract_cpu_s": c1 - c0,
         "match_wall_s": t2 - t1, "match_cpu_s": c2 - c1,
         "protocol1_wall_s": t2 - t0, "protocol1_cpu_s": c2 - c0,
