@@ -138,7 +138,8 @@ def cache_key(seq, descriptor: Descriptor, fingerprint: str | None = None) -> Ca
     generator, whose streams NumPy does not promise to keep across releases.
     """
     return CacheKey.build(
-        sequence=seq.name,
+        sequence="scans",  # not seq.name: a copied or renamed data set must hit the cache
+        # (the fingerprint already identifies the scans; issue 15)
         fingerprint=fingerprint if fingerprint is not None else seq.fingerprint(),
         descriptor=descriptor.name,
         params=params_dict(descriptor.params),

@@ -66,6 +66,8 @@ def _positions(sequence, poses_path, calib_path, pose_frame, reader_options):
         from lidar_iris_eval.io import open_sequence
 
         seq = open_sequence(sequence, poses=poses_path, calib=calib_path, **reader_options)
+        if reader_options.get("lidar_frame") and not _given("pose_frame"):
+            pose_frame = "lidar"  # the poses are LiDAR poses: nothing to fall back from
         pose_frame = seq.resolve_pose_frame(pose_frame)
         return seq.positions(pose_frame), sequence, seq, pose_frame
     if reader_options:
@@ -76,6 +78,14 @@ def _positions(sequence, poses_path, calib_path, pose_frame, reader_options):
             raise LirisError("--pose-frame lidar", "needs --calib to convert camera poses")
         poses = camera_to_lidar(poses, read_calib(calib_path))
     return poses[:, :3, 3], poses_path, None, pose_frame
+
+
+def _given(name: str) -> bool:
+    """True when option ``name`` was set on the command line (not a default)."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is None:
+        return False
+    return ctx.get_parameter_source(name) == click.core.ParameterSource.COMMANDLINE
 
 
 def _scan_statistics(seq) -> dict:

@@ -113,7 +113,9 @@ class Evaluation:
         }
         for key, value in extra.items():
             if key == "reader_options":
-                config["sequence"]["reader_options"] = {k: str(v) for k, v in value.items()}
+                config["sequence"]["reader_options"] = {  # flags and numbers stay typed
+                    k: v if v is None or isinstance(v, (bool, int, float)) else str(v)
+                    for k, v in value.items()}
             else:
                 config[key] = value
         return config

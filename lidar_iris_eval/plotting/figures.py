@@ -263,8 +263,8 @@ def _open_run_sequence(run: RunResults):
         return None
     from lidar_iris_eval.io import open_sequence
 
-    try:
-        sequence = open_sequence(path)
+    try:  # with the run's recorded --poses, --lidar-frame-poses, ... (issue 15)
+        sequence = open_sequence(path, **_recorded_reader_options(run))
     except LirisError as err:
         warn(path, f"cannot open sequence ({err.problem}); LiDAR Iris figures skipped")
         return None
@@ -273,6 +273,14 @@ def _open_run_sequence(run: RunResults):
              "LiDAR Iris figures skipped")
         return None
     return sequence
+
+
+def _recorded_reader_options(run: RunResults) -> dict:
+    """The reader options config.yaml records, typed again (old runs stored strings)."""
+    recorded = (run.config.get("sequence") or {}).get("reader_options") or {}
+    typed = {"lidar_frame": lambda v: v if isinstance(v, bool) else str(v) == "True",
+             "tolerance": float, "min_distance": float, "every": int}
+    return {k: (typed[k](v) if k in typed and v is not None else v) for k, v in recorded.items()}
 
 
 def _scan_id(sequence, index: int) -> str:
