@@ -138,13 +138,14 @@ class ESM(Descriptor):
             labels = None
         elif self.params.ground == "labels" and labels is None:
             raise LirisError("esm.ground", "is 'labels' but the scan has no labels")
-        t0 = time.perf_counter()
+        # per-thread CPU time: what one core spends, robust to a busy machine
+        t0 = time.thread_time()
         segs = segment_scan(np.asarray(points)[:, :3], labels, self.segment_params)
-        t1 = time.perf_counter()
+        t1 = time.thread_time()
         w, arch = self.weights()
         emb = network.embed(w, arch, segs.points)
         q = network.quality(w, emb) if len(emb) else np.zeros(0)
-        t2 = time.perf_counter()
+        t2 = time.thread_time()
         self.timing["segmentation"] += t1 - t0
         self.timing["description"] += t2 - t1
         self.timing["scans"] += 1
