@@ -58,6 +58,7 @@ def make_params(params_type: type[P], values: dict[str, Any], source: str) -> P:
     given as text.
     """
     fields = {f.name: f for f in dataclasses.fields(params_type)}
+    values = _renamed_keys(params_type, values, source)
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise LirisError(
@@ -73,6 +74,25 @@ def make_params(params_type: type[P], values: dict[str, Any], source: str) -> P:
             reason = f": {err}" if str(err) else ""
             raise LirisError(source, f"bad value {value!r} for {key}{reason}") from None
     return params_type(**converted)
+
+
+def _renamed_keys(params_type: type, values: dict[str, Any], source: str) -> dict[str, Any]:
+    """Old parameter spellings (``params_type.renamed``: old -> new) mapped to the new
+    ones with a deprecation warning; both spellings at once is an error."""
+    renamed = getattr(params_type, "renamed", None) or {}
+    if not any(old in values for old in renamed):
+        return values
+    from lidar_iris_eval.errors import warn
+
+    out = dict(values)
+    for old, new in renamed.items():
+        if old in out:
+            if new in out:
+                raise LirisError(source, f"{old} and {new} are the same parameter; give {new}")
+            warn(source, f"parameter {old} is deprecated; use {new} (the old spelling goes in "
+                         f"the next release)")
+            out[new] = out.pop(old)
+    return out
 
 
 def _coerce(value: Any, default: Any) -> Any:

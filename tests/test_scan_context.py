@@ -214,7 +214,7 @@ def test_params_validation_and_presets():
     name, _ = descriptor_preset_values("scan-context", None)
     assert name == "reference"
     ref = get_descriptor("scan-context", "reference").params
-    assert (ref.num_rings, ref.num_sectors, ref.max_radius, ref.lidar_height) == (20, 60, 80.0, 2.0)
+    assert (ref.rings, ref.sectors, ref.max_radius, ref.lidar_height) == (20, 60, 80.0, 2.0)
     assert (ref.voxel_size, ref.search, ref.search_radius) == (0.5, "sector-key", 3)
     assert ref.ring_key == "mean"
     assert get_descriptor("scan-context", "exhaustive").params.search == "exhaustive"
@@ -225,7 +225,7 @@ def test_params_validation_and_presets():
 
 # ------------------------------------------------------------------------- distances
 def test_distance_by_hand_and_yaw_convention():
-    desc = ScanContext(ScanContextParams(num_rings=2, num_sectors=4, search="exhaustive"))
+    desc = ScanContext(ScanContextParams(rings=2, sectors=4, search="exhaustive"))
     q = np.array([[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 1.0, 0.0]])  # last column empty
     c = np.array([[3.0, 0.0, 2.0, 0.0], [4.0, 0.0, 0.0, 0.0]])
     # C++ shift k compares q with roll(c, k): valid columns and cosines by hand

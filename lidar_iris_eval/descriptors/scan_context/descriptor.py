@@ -1,7 +1,7 @@
 """Scan Context (Kim & Kim, IROS 2018), faithful to the authors' C++ implementation.
 
 A scan is voxel-downsampled, lifted by the sensor height and binned into
-``num_rings x num_sectors`` polar bins (4 m rings, 6 degree sectors out to
+``rings x sectors`` polar bins (4 m rings, 6 degree sectors out to
 80 m by default); each bin keeps the maximum height of its points (0 = empty).
 Two descriptors are compared by ``1 - mean cosine`` over the columns
 (sectors) non-empty in both, minimised over circular column shifts.
@@ -17,9 +17,9 @@ Presets (``configs/descriptors/scan-context.yaml``)
     and python ``Distance_SC.py`` search). ``d_exhaustive <= d_reference``.
 ``paper``
     The IROS 2018 paper where it differs from the C++: ring key = occupancy
-    (non-empty bins per ring / ``num_sectors``, MATLAB ``sc2invkeyL0.m``), all
+    (non-empty bins per ring / ``sectors``, MATLAB ``sc2invkeyL0.m``), all
     shifts (the sector-key alignment is "not in original IROS18", C++ comment),
-    and the sum of column cosines divided by ``num_sectors`` (eq. 5) rather
+    and the sum of column cosines divided by ``sectors`` (eq. 5) rather
     than by the number of columns valid in both. On full 360-degree scans,
     where every column is non-empty, only the ring key differs from
     ``exhaustive``. What the paper leaves open (downsampling, height offset)
@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -106,8 +107,9 @@ class ScanContextParams:
 
     Attributes
     ----------
-    num_rings, num_sectors : int
-        Polar grid size (20 rings of 4 m, 60 sectors of 6 degrees).
+    rings, sectors : int
+        Polar grid size (20 rings of 4 m, 60 sectors of 6 degrees); named like
+        LiDAR Iris' ``rings``/``sectors`` (``num_rings``/``num_sectors`` until 0.1).
     max_radius : float
         Points farther than this (metres, in the x-y plane) are dropped.
     lidar_height : float
@@ -123,16 +125,19 @@ class ScanContextParams:
         (C++), or all of them.
     search_radius : int
         Half-width of the sector-key window in columns; the C++ uses
-        ``round(0.5 * 0.1 * num_sectors) = 3``.
+        ``round(0.5 * 0.1 * sectors) = 3``.
     divide_by : {"valid", "sectors"}
         Mean of the column cosines over the columns valid in both (C++) or
-        sum divided by ``num_sectors`` (paper eq. 5).
+        sum divided by ``sectors`` (paper eq. 5).
     num_candidates : int
         Default ``k`` of :meth:`ScanContext.candidates` (C++ 10, MATLAB 50).
     """
 
-    num_rings: int = 20
-    num_sectors: int = 60
+    rings: int = 20
+    sectors: int = 60
+
+    #: old spellings, accepted with a deprecation warning for one release
+    renamed: ClassVar[dict[str, str]] = {"num_rings": "rings", "num_sectors": "sectors"}
     max_radius: float = 80.0
     lidar_height: float = 2.0
     voxel_size: float = 0.5
@@ -146,7 +151,7 @@ class ScanContextParams:
         def bad(key: str, problem: str) -> LirisError:
             return LirisError(f"scan-context {key}", problem)
 
-        for key in ("num_rings", "num_sectors", "num_candidates"):
+        for key in ("rings", "sectors", "num_candidates"):
             if getattr(self, key) < 1:
                 raise bad(key, "must be at least 1")
         if self.search_radius < 0:
@@ -250,7 +255,7 @@ def polar_angle_deg(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def polar_context(points: np.ndarray, params: ScanContextParams) -> np.ndarray:
-    """The ``(num_rings, num_sectors)`` float32 max-height image of ``(N, 3)`` points."""
+    """The ``(rings, sectors)`` float32 max-height image of ``(N, 3)`` points."""
     p = params
     x, y = points[:, 0], points[:, 1]
     height = (points[:, 2].astype(np.float64) + p.lidar_height).astype(np.float32)
@@ -258,15 +263,15 @@ def polar_context(points: np.ndarray, params: ScanContextParams) -> np.ndarray:
     keep = radius <= p.max_radius
     radius, height = radius[keep], height[keep]
     theta = polar_angle_deg(x[keep], y[keep]).astype(np.float64)
-    ring = np.ceil(radius.astype(np.float64) / p.max_radius * p.num_rings)
-    sector = np.ceil(theta / 360.0 * p.num_sectors)
+    ring = np.ceil(radius.astype(np.float64) / p.max_radius * p.rings)
+    sector = np.ceil(theta / 360.0 * p.sectors)
     sector[np.isnan(sector)] = 1.0  # C++: int(NaN) is INT_MIN, clamped up to 1
-    ring = np.clip(ring, 1, p.num_rings).astype(np.intp) - 1
-    sector = np.clip(sector, 1, p.num_sectors).astype(np.intp) - 1
-    flat = np.full(p.num_rings * p.num_sectors, _NO_POINT, dtype=np.float32)
-    np.maximum.at(flat, ring * p.num_sectors + sector, height)
+    ring = np.clip(ring, 1, p.rings).astype(np.intp) - 1
+    sector = np.clip(sector, 1, p.sectors).astype(np.intp) - 1
+    flat = np.full(p.rings * p.sectors, _NO_POINT, dtype=np.float32)
+    np.maximum.at(flat, ring * p.sectors + sector, height)
     flat[flat == _NO_POINT] = 0.0
-    return flat.reshape(p.num_rings, p.num_sectors)
+    return flat.reshape(p.rings, p.sectors)
 
 
 def ring_key(sc: np.ndarray, kind: str) -> np.ndarray:
@@ -307,15 +312,15 @@ class ScanContext(Descriptor):
         p = self.params
         self.dtype = np.dtype(
             [
-                ("sc", np.float32, (p.num_rings, p.num_sectors)),
-                ("ring_key", np.float64, (p.num_rings,)),
-                ("sector_key", np.float64, (p.num_sectors,)),
+                ("sc", np.float32, (p.rings, p.sectors)),
+                ("ring_key", np.float64, (p.rings,)),
+                ("sector_key", np.float64, (p.sectors,)),
             ]
         )
         # Exhaustive search sees every shift of both orders, and the exact
         # integer correlations satisfy S_ab(k) == S_ba(-k): d(a,b) == d(b,a)
         # bitwise. The sector-key window breaks ties by index, so it is not.
-        self.symmetric = p.search == "exhaustive" or 2 * p.search_radius + 1 >= p.num_sectors
+        self.symmetric = p.search == "exhaustive" or 2 * p.search_radius + 1 >= p.sectors
 
     # ----------------------------------------------------------------- extraction
     def compute(self, points: np.ndarray) -> np.ndarray:
@@ -398,7 +403,7 @@ class ScanContext(Descriptor):
             q["sc"], c["sc"], q["sector_key"], c["sector_key"], p.divide_by == "sectors",
             -1 if p.search == "exhaustive" else p.search_radius,
         )
-        n = p.num_sectors
+        n = p.sectors
         # shift_to_yaw on one value, in Python floats (the same double arithmetic)
         yaw = ((n - shift) % n) * (360.0 / n) if shift >= 0 else math.nan
         return float(dist), float(yaw)
@@ -468,7 +473,7 @@ class ScanContextMatcher:
             p.divide_by == "sectors",
             radius,
         )
-        return dist, shift_to_yaw(shift, p.num_sectors)
+        return dist, shift_to_yaw(shift, p.sectors)
 
     def distances(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(M,)`` distances and yaws of one query against the prepared database."""
