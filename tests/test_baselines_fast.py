@@ -82,3 +82,17 @@ def test_real_scans_bitwise(kitti_dir):
         for got, ref in zip(trace_lines(s, e, occupancy(vox)),
                             trace_lines_numpy(s, e, occupancy(vox)), strict=True):
             np.testing.assert_array_equal(got, ref)
+
+
+def test_esf_voxel_coords_equal_numpy():
+    from lidar_iris_eval.descriptors.esf.descriptor import voxel_coords_numpy
+
+    rng = np.random.default_rng(13)
+    pts = normalise(cloud(rng))
+    edge = np.array([[-0.0, 0.0, 32.0], [-32.0, 31.5, -31.99], [np.float32(32.000004), -1, 1]],
+                    dtype=np.float32)  # faces, the grid limits and just beyond them
+    for p in (pts, edge, rng.normal(0, 40, (5000, 3)).astype(np.float32)):
+        got = voxel_coords(p)
+        np.testing.assert_array_equal(got, voxel_coords_numpy(p))
+        assert got.min() >= 0 and got.max() <= GRID - 1
+    np.testing.assert_array_equal(voxel_coords(edge), [[31, 31, 63], [0, 63, 0], [63, 31, 32]])
