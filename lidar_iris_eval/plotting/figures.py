@@ -109,7 +109,18 @@ def build_timing(run: RunResults) -> Figure | None:
         label = "matching [ms / query]"
     if not extract and not any(np.isfinite(v) for v in match.values()):
         return None
-    return timing_figure(extract, match, label)
+    return timing_figure(extract, match, label, _conditions(run))
+
+
+def _conditions(run: RunResults) -> str:
+    """``"2 cores, load average 11.7 (1 min) at the end of the run"``, when recorded."""
+    host = run.metrics.get("host") or {}
+    load = host.get("load_average_1_5_15min")
+    if not load:
+        return ""
+    cores = host.get("cpu_count")
+    where = f"{cores} cores, " if cores else ""
+    return f"{where}load average {load[0]:.1f} at the end of the run (matching is wall time)"
 
 
 def build_iris(run: RunResults, frame: int | None = None) -> tuple[Figure | None, Figure | None]:
