@@ -65,6 +65,9 @@ def main() -> None:
     ap.add_argument("--quality-steps", type=int, default=300)
     ap.add_argument("--batch", type=int, default=48, help="anchor-positive pairs per step")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--norm-scale", type=float, default=-1.0,
+                    help="segment normalisation: 0 per-segment RMS radius, >0 this constant, "
+                         "<0 (default) the training segments' median RMS radius")
     ap.add_argument("--minutes", type=float, default=30.0, help="stop training after this")
     ap.add_argument("--stages", default="data,train,quality,export")
     ap.add_argument("--out", type=Path, default=None, help="weights file (default: in package)")

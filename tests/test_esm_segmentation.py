@@ -98,3 +98,14 @@ def test_real_kitti_scans_segment_within_limits(kitti_dir):
         members = np.concatenate(segs.members)
         assert len(np.unique(members)) == len(members)
         assert np.all(pts[members, 2] > -1.0)
+
+
+def test_fixed_normalisation_keeps_size():
+    rng = np.random.default_rng(3)
+    small = rng.normal(size=(300, 3)) * 0.5
+    big = small * 3.0
+    a, rms_a = normalise(small, 0.9)
+    b, rms_b = normalise(big, 0.9)
+    assert np.isclose(rms_b / rms_a, 3.0)
+    assert np.allclose(b, 3.0 * a, atol=1e-5)  # size survives; per-segment RMS would equalise
+    assert np.isclose(np.sqrt((a.astype(float) ** 2).sum(1).mean()), rms_a / 0.9, rtol=1e-5)

@@ -115,8 +115,9 @@ class ESM(Descriptor):
     @property
     def segment_params(self) -> SegmentParams:
         p = self.params
+        _, arch = self.weights()
         return SegmentParams(p.max_range, p.ground_z, p.voxel, p.radius, p.min_points,
-                             p.max_points, 256, p.seed)
+                             p.max_points, arch.n_points, p.seed, arch.norm_scale)
 
     def weights(self) -> tuple[dict, network.Arch]:
         if self._weights is None:

@@ -113,9 +113,10 @@ def write_golden(valid: Path, out: Path, n: int = 6) -> dict:
     data = SegmentSet.load(valid)
     _, first = np.unique(data.object_id, return_index=True)
     rows = np.sort(first[data.object_id[first] > 0])[:n]
-    pts = np.stack([normalise(resample(data.segment(s), 256, np.random.default_rng([0, int(s)])))[0]
-                    for s in rows])
     w, arch = network.load_weights()
+    pts = np.stack([normalise(resample(data.segment(s), arch.n_points,
+                                       np.random.default_rng([0, int(s)])), arch.norm_scale)[0]
+                    for s in rows])
     emb = network.embed(w, arch, pts)
     gold = {"points": pts, "embedding": emb, "quality": network.quality(w, emb),
             "sha256": np.array(network.sha256_of(network.WEIGHTS_FILE))}

@@ -58,6 +58,7 @@ class Arch:
     depth_mult: tuple = (1, 1, 1, 1)
     fc: tuple = (64, 32, 16)
     bn_eps: float = 1e-5
+    norm_scale: float = 0.0  # segment normalisation the network was trained with (segmentation)
 
     def to_json(self) -> str:
         return json.dumps({k: list(v) if isinstance(v, tuple) else v

@@ -34,7 +34,8 @@ from lidar_iris_eval.descriptors.esm.torch_net import ESMNet
 MARGIN = 0.01
 
 
-def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256) -> np.ndarray:
+def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256,
+            norm_scale: float = 0.0) -> np.ndarray:
     """One augmented, resampled, normalised copy of a raw segment (see module docstring)."""
     pts = points - points.mean(axis=0)
     yaw = rng.uniform(-np.pi, np.pi)
@@ -48,7 +49,7 @@ def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256) -> np.nd
         keep &= proj <= cut
     if keep.sum() >= 20:
         pts = pts[keep]
-    return normalise(resample(pts, n, rng))[0]
+    return normalise(resample(pts, n, rng), norm_scale)[0]
 
 
 def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -58,7 +59,8 @@ def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -
     with torch.no_grad():
         for i in range(0, len(rows), 128):
             batch = np.stack([normalise(resample(data.segment(s), net.arch.n_points,
-                                                 np.random.default_rng([seed, int(s)])))[0]
+                                                 np.random.default_rng([seed, int(s)])),
+                                        net.arch.norm_scale)[0]
                               for s in rows[i:i + 128]])
             idx = network.neighbour_index(batch, net.arch)
             out.append(net(torch.from_numpy(batch), idx).numpy())
@@ -114,9 +116,13 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
     rng = np.random.default_rng(args.seed)
     work = Path(args.work)
     pairs = true_pairs(train)
-    net = ESMNet()
+    norm = float(args.norm_scale)
+    if norm < 0:  # the median RMS radius of the training segments, rounded to 0.1 m
+        rms = [normalise(train.segment(s))[1] for s in range(0, len(train), 5)]
+        norm = round(float(np.median(rms)), 1)
+    net = ESMNet(network.Arch(norm_scale=norm))
     ckpt = work / "net.pt"
-    log = {"train_segments": len(train), "train_pairs": int(len(pairs)),
+    log = {"train_segments": len(train), "train_pairs": int(len(pairs)), "norm_scale": norm,
            "classes": {COARSE_NAMES[c]: int((train.coarse == c).sum())
                        for c in np.unique(train.coarse)}}
     if "train" in stages:
@@ -128,7 +134,8 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
                 break
             net.train()
             ab = sample_batch(pairs, train, args.batch, rng)
-            pts = np.stack([augment(train.segment(s), rng) for s in ab.ravel()])
+            pts = np.stack([augment(train.segment(s), rng, norm_scale=norm)
+                            for s in ab.ravel()])
             idx = network.neighbour_index(pts, net.arch)
             emb = net(torch.from_numpy(pts), idx).reshape(len(ab), 2, -1)
             loss, trip, dpos = wl_loss(emb[:, 0], emb[:, 1], train.coarse[ab[:, 0]],
@@ -182,7 +189,8 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
             rows = np.sort(rng.choice(len(valid), 3000, replace=False))
         emb = network.embed(w, arch, np.stack([
             normalise(resample(valid.segment(s), arch.n_points,
-                               np.random.default_rng([0, int(s)])))[0] for s in rows]))
+                               np.random.default_rng([0, int(s)])), arch.norm_scale)[0]
+            for s in rows]))
         remap = -np.ones(len(valid), np.int64)
         remap[rows] = np.arange(len(rows))
         keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
