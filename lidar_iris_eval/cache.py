@@ -30,6 +30,7 @@ current directory (git-ignored in this repository).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -217,7 +218,12 @@ class DescriptorCache:
             return
         path = self.partial_dir(key) / f"chunk-{start:09d}-{stop:09d}.npz"
         meta = {"digest": key.digest(), "start": start, "stop": stop}
-        write_arrays(path, arrays, meta)
+        try:
+            write_arrays(path, arrays, meta)
+        except (LirisError, OSError):
+            with contextlib.suppress(OSError):  # a full disk leaves no empty folder behind
+                path.parent.rmdir()
+            raise
 
     def load_chunks(self, key: CacheKey) -> dict[tuple[int, int], dict[str, np.ndarray]]:
         """Verified chunks stored for ``key``, by ``(start, stop)``."""

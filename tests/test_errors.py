@@ -19,6 +19,7 @@ import pytest
 from conftest import assert_one_line_error, run_cli
 from test_protocols import two_pass_sequence
 
+from lidar_iris_eval.cache import read_arrays
 from lidar_iris_eval.descriptors import _REGISTRY
 
 
@@ -147,6 +148,19 @@ def test_full_tmpfs_run_folder(seq_dir, tmp_path, capsys):
                                          "--cache-dir", tmp_path / "cache"), capsys)
         assert_one_line_error(code, err, str(disk / "run"), "no space left")
         assert not list(disk.iterdir())
+
+
+def test_full_tmpfs_cache_leaves_nothing(seq_dir, tmp_path, capsys):
+    with tiny_disk(tmp_path / "disk", "8k") as disk:
+        code, _, err = run_cli(eval_args(seq_dir, "--out", tmp_path / "run",
+                                         "--cache-dir", disk / "cache"), capsys)
+        assert_one_line_error(code, err, str(disk / "cache"), "no space left")
+        left = [p for p in disk.rglob("*") if p.is_file()]
+        assert not [p for p in left if ".tmp-" in p.name]  # no half-written file
+        for chunk in left:  # only finished chunks, complete and verified, to resume from
+            read_arrays(chunk)
+        assert not [p for p in disk.rglob("*.partial") if not any(p.iterdir())]
+    assert not (tmp_path / "run").exists()
 
 
 def test_random_bytes_bag(tmp_path, capsys):
