@@ -105,10 +105,10 @@ def open_folder(
         lidar_poses = camera_to_lidar(raw_poses, tr)
         camera_poses = raw_poses
 
-    kept_paths = [scan_paths[i] for i in keep]
-    labels_dir = folder / "labels"
     chosen = select_keyframes(lidar_poses[:, :3, 3], every, min_distance)
     keep = keep[chosen]
+    kept_paths = [scan_paths[i] for i in keep]
+    labels_dir = folder / "labels"
     return Sequence(
         name=folder.name,
         path=folder,
@@ -116,10 +116,10 @@ def open_folder(
         poses=lidar_poses[chosen],
         camera_poses=None if camera_poses is None else camera_poses[chosen],
         times=None if scan_times is None else scan_times[keep],
-        label_paths=find_labels(labels_dir, kept_paths),
-        labels_dir=labels_dir,
         calib=tr,
         frame_ids=_frame_ids(scan_paths, keep) if frame_ids is None else frame_ids[keep],
+        label_paths=find_labels(labels_dir, kept_paths),
+        labels_dir=labels_dir,
     )
 
 
