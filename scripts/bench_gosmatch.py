@@ -156,7 +156,8 @@ def sweep(args) -> None:
     for tol, mp in front:
         method = GOSMatch(replace(base.params, cluster_tolerance=tol, cluster_min_points=mp),
                           preset=base.preset)
-        census = object_census(seq, method, range(0, len(seq), max(1, len(seq) // 20)))
+        census = {} if getattr(seq, "has_objects", False) else object_census(
+            seq, method, range(0, len(seq), max(1, len(seq) // 20)))
         feats, _, t_comp = features_of(seq, method, quiet=True)
         grid = itertools.product(args.candidates, args.iterations, args.threshold,
                                  args.min_inliers, args.score, args.seeds)
