@@ -16,7 +16,9 @@ Two jobs, both outside the test suite:
     ``two_stage_matches``), wall and CPU time of each stage after compiling the
     kernels, plus the compiled verification against the NumPy reference
     (``GOSMatch.verify_reference`` around ``geometry.ransac_rigid``) on a sample
-    of queries in the same run. Matching runs on one thread.
+    of queries in the same run. Matching runs on one thread; ``--processes 2``
+    also times it with the queries dealt to 2 forked processes (the same
+    per-query steps; the matches are checked identical to the pipeline's).
 
 The machine may be shared: the report holds the load average before and after.
 """
@@ -175,6 +177,43 @@ def sweep(args) -> None:
         Path(args.json).write_text(json.dumps(results, indent=1))
 
 
+_SHARED: dict = {}
+
+
+def _match_share(part: int):
+    """Protocol-1 matches of every ``processes``-th query (forked worker, shared database)."""
+    method, db, exclude, k, processes = (_SHARED[key] for key in
+                                         ("method", "db", "exclude", "k", "processes"))
+    queries = np.arange(min(exclude, len(db)), len(db))[part::processes]
+    match = np.full(len(queries), -1, dtype=np.int64)
+    dist = np.full(len(queries), np.inf)
+    for q, i in enumerate(queries):
+        # as the pipeline: unique candidates sorted by index, NaN never accepted
+        cand = np.unique(method.retrieve(db, int(i), int(i - exclude + 1), k)[0])
+        if len(cand) == 0:
+            continue
+        score = method.verify(db, int(i), cand).score
+        score = np.where(np.isnan(score), np.inf, score)
+        b = int(np.argmin(score))
+        if np.isfinite(score[b]):
+            match[q], dist[q] = cand[b], score[b]
+    return queries, match, dist
+
+
+def match_processes(method, features, exclude: int, k: int, processes: int):
+    """Protocol-1 matches with queries dealt round-robin to forked processes."""
+    import multiprocessing as mp
+
+    _SHARED.update(method=method, db=method.prepare(features), exclude=exclude, k=k,
+                   processes=processes)
+    with mp.get_context("fork").Pool(processes) as pool:
+        parts = pool.map(_match_share, range(processes))
+    queries = np.concatenate([p[0] for p in parts])
+    order = np.argsort(queries)
+    return (queries[order], np.concatenate([p[1] for p in parts])[order],
+            np.concatenate([p[2] for p in parts])[order])
+
+
 def speed(args) -> None:
     """Protocol 1 through the pipeline's own path: extract() then two_stage_matches()."""
     from lidar_iris_eval.extract import extract
@@ -206,6 +245,21 @@ def speed(args) -> None:
     for i, c in zip(sample, cand, strict=True):
         method.verify_reference(features, int(i), c)
     r2 = time.perf_counter()
+    parallel = {}
+    if args.processes > 1:
+        p0, q0 = time.perf_counter(), time.process_time()
+        dbp = extract(seq, method, cache=None, workers=args.workers, progress=False)
+        p1 = time.perf_counter()
+        queries, match, dist = match_processes(method, dbp.descriptors, args.exclude, k,
+                                               args.processes)
+        p2 = time.perf_counter()
+        parallel = {
+            "processes": args.processes, "extract_wall_s": p1 - p0, "match_wall_s": p2 - p1,
+            "protocol1_wall_s": p2 - p0, "parent_cpu_s": time.process_time() - q0,
+            "identical_to_pipeline": bool(np.array_equal(queries, best.query)
+                                          and np.array_equal(match, best.match)
+                                          and np.array_equal(dist, best.distance)),
+        }
     report = {
         "sequence": str(args.seq), "frames": len(seq), "preset": method.preset,
         "params": {f: getattr(method.params, f) for f in method.params.__dataclass_fields__},
@@ -218,6 +272,7 @@ def speed(args) -> None:
         "kernel_speedup_vs_reference": (r2 - r1) / max(r1 - r0, 1e-12),
         "loadavg_before": load0, "loadavg_after": os.getloadavg(), "cpu_count": os.cpu_count(),
         "metrics": {key: res.metrics[key] for key in ("f1_max", "r100p", "ap", "n_revisits")},
+        "parallel": parallel,
     }
     print(json.dumps(report, indent=1))
     if args.json:
@@ -240,6 +295,9 @@ def main(argv=None) -> None:
         p.add_argument("-q", "--quiet", action="store_true")
     sp = sub.choices["speed"]
     sp.add_argument("--workers", type=int, default=1, help="extraction processes")
+    sp.add_argument("--processes", type=int, default=2,
+                    help="also time matching with queries dealt to this many forked processes "
+                         "(checked identical to the pipeline's one-process result)")
     sp.add_argument("--reference-queries", type=int, default=40,
                     help="queries timed through the NumPy reference verification")
     sw = sub.choices["sweep"]
