@@ -313,3 +313,27 @@ def test_reverse_revisits_from_headings():
     assert rev.sum() > 0
     same = reverse_revisits(positions, gt, np.tile([1.0, 0, 0], (20, 1)))
     assert not same.any()
+
+
+def test_scan_context_candidates_on_the_two_stage_path_equal_the_former_loop():
+    """--candidates K through retrieve/verify gives exactly what the dedicated loop gave:
+    ring-key candidates among j <= i - E, sorted, full distance, smallest wins."""
+    from lidar_iris_eval.descriptors import get_descriptor
+
+    rng = np.random.default_rng(12)
+    desc = get_descriptor("scan-context")
+    base = [random_scan(rng, 3000) for _ in range(6)]
+    scans = [b + rng.normal(scale=0.05, size=b.shape).astype(np.float32)
+             for b in base for _ in range(4)]  # 4 noisy visits of 6 places
+    descs = np.stack([desc.compute(s) for s in scans])
+    got = retrieval_matches(desc, descs, exclude=3, k=4)
+    assert got.source == "candidates:4" and got.inliers is None
+    assert (got.match >= 0).all() and len(got.query) == 21
+    for q, i in enumerate(got.query):
+        database = descs[: i - 3 + 1]
+        cand = np.unique(desc.candidates(descs[i: i + 1], database, 4)[0])
+        d, y = desc.distances(descs[i], database[cand])
+        d = np.where(np.isnan(d), np.inf, d)
+        best = int(np.argmin(d))
+        assert got.match[q] == cand[best] and got.distance[q] == d[best]
+        assert got.yaw_deg[q] == y[best]
