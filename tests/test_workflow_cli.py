@@ -79,8 +79,11 @@ def test_config_replays_the_run_exactly(seq, tmp_path, capsys, monkeypatch):
 
 def test_external_m2dp_vectors_reproduce_m2dp_metrics(seq, tmp_path, capsys):
     run, _, _ = evaluate(seq, tmp_path, capsys, "m2dp", "-d", "m2dp")
+    code, _, err = run_cli(["extract", seq, "-d", "m2dp", "--cache-dir", tmp_path / "cache",
+                            "--export-npy", tmp_path, "-q"], capsys)
+    assert code == 0, err
     db = extract(open_sequence(seq), get_descriptor("m2dp"), cache=tmp_path / "cache")
-    np.save(tmp_path / "m2dp.npy", db.descriptors)
+    assert np.array_equal(np.load(tmp_path / "m2dp.npy"), db.descriptors)
     ext, _, _ = evaluate(seq, tmp_path, capsys, "ext", "--external", f"mine={tmp_path}/m2dp.npy")
     a = json.loads((run / "metrics.json").read_text())["results"]
     b = json.loads((ext / "metrics.json").read_text())["results"]

@@ -134,8 +134,11 @@ def run_extraction(seq, descriptors: list[Descriptor], cache_dir: Path | None, w
 @click.option("--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE, show_default=True,
               help="Scans per chunk (the unit saved as it goes, so a killed run resumes).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+@click.option("--export-npy", "npy_dir", type=click.Path(path_type=Path), default=None,
+              help="Also write each (N, D) descriptor array as DIR/<descriptor>.npy (the "
+                   "format liris eval --external reads).")
 def command(sequence, descriptor_text, preset, params, sensor, cache_dir, workers, quiet,
-            chunk_size, as_json, reader_options):
+            chunk_size, as_json, reader_options, npy_dir):
     """Compute descriptors of every scan of SEQUENCE and store them in the cache.
 
     A second run with the same scans, descriptor parameters and liris version
@@ -151,6 +154,11 @@ def command(sequence, descriptor_text, preset, params, sensor, cache_dir, worker
     for d in descriptors:  # every method's inputs before any work (e.g. labels/)
         d.check_inputs(seq)
     dbs = run_extraction(seq, descriptors, cache_dir, workers, quiet, chunk_size)
+    if npy_dir is not None:  # issue 17: descriptors for --external
+        from lidar_iris_eval.cli.workflow import export_npy
+
+        for name, path in export_npy(dbs, npy_dir).items():
+            click.echo(f"{name}: descriptors written to {path}", err=as_json)
     rows = [
         {
             "descriptor": db.descriptor,

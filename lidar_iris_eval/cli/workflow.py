@@ -143,3 +143,39 @@ def extract_all(seq, descriptors, cache, workers: int, quiet: bool):
         else:
             dbs.append(extract(seq, d, cache=cache, workers=workers, progress=not quiet))
     return dbs
+
+
+def export_npy(dbs, folder) -> dict[str, str]:
+    """Write each plain ``(N, D)`` numeric descriptor array as ``folder/<name>.npy``.
+
+    These are the files ``liris eval --external NAME=PATH`` reads back, so a
+    method's own descriptors can be checked against its built-in evaluation.
+    Multi-part (structured) or variable-size descriptors have no such form
+    and are reported as skipped. Existing files are never replaced.
+    """
+    import os
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from lidar_iris_eval.errors import warn
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = {}
+    for db in dbs:
+        array = db.descriptors
+        if not isinstance(array, np.ndarray) or array.dtype.kind not in "fiu" or array.ndim != 2:
+            warn(db.descriptor, "not a plain (N, D) numeric array (a structured or variable-size "
+                                "descriptor); not exported")
+            continue
+        target = folder / f"{db.descriptor}.npy"
+        if target.exists():
+            raise LirisError(target, "exists; remove it or choose another --export-npy folder")
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".npy", dir=folder)
+        with os.fdopen(fd, "wb") as handle:
+            np.save(handle, array, allow_pickle=False)
+        os.replace(tmp, target)
+        written[db.descriptor] = str(target)
+    return written
