@@ -133,7 +133,10 @@ def score_protocol1(
     is_revisit = gt.revisit[query]
     discount = (is_revisit & ~is_true) if recall_denominator == "accepted" else None
     curve = pr_curve(matches.distance, is_true, gt.n_revisits, discount=discount)
-    metrics = summarize(curve)
+    metrics = summarize(curve, gt.n_revisits, len(query),
+                        f"protocol 1 (E={gt.exclude}, {gt.n_frames} frames, "
+                        f"radius {gt.radius:g} m)",
+                        "no queries: the exclusion window is at least the sequence length")
     metrics.update(
         n_queries=int(len(query)),
         n_skipped=int(gt.n_frames - len(query)),

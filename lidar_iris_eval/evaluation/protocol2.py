@@ -78,7 +78,9 @@ def score_protocol2(affinity: Affinity, gt: GroundTruth, rule: str = ALL_PAIRS_R
             mask = ~np.eye(n, dtype=bool)
             weight = 1
         curve = pr_curve(matrix[mask], positive[mask], gt.n_positive_pairs, weight=weight)
-    metrics = summarize(curve)
+    metrics = summarize(curve, gt.n_positive_pairs, n * (n - 1),
+                        f"protocol 2 ({n} frames, radius {gt.radius:g} m)",
+                        "no pairs: the sequence has fewer than 2 frames")
     metrics.update(
         n_pairs=n * (n - 1),
         n_positives=gt.n_positive_pairs,
