@@ -46,10 +46,10 @@ def test_report_is_offline_and_embeds_affinity_as_images(run_dir, capsys):
     assert "cdn.plot.ly" not in page
     images = re.findall(r"src='data:image/png;base64,", page)
     assert len(images) == 2  # one affinity image per descriptor
-    # the affinity matrices are not shipped as plotly JSON (no heatmap trace at all)
-    assert '"type":"heatmap"' not in page and "heatmap" not in page
-    affinity = np.load(run_dir / "protocol2" / "toy" / "affinity.npy")
-    assert affinity.shape == (24, 24)
+    # the affinity matrices are images only: no plotly figure (JSON) in their section
+    section = page.split("<div id='affinity'>")[1].split("</div>")[0]
+    assert "<script" not in section and section.count("<img") == 2
+    assert np.load(run_dir / "protocol2" / "toy" / "affinity.npy").shape == (24, 24)
     for needle in ("id='metrics'", "pr-protocol1", "pr-protocol2", "trajectory",
                    "exclusion: E=5 frames", "true positive"):
         assert needle in page, needle
