@@ -138,20 +138,27 @@ class StreamingPR:
         """The exact PR curve reduced as :func:`reduce_curve` reduces it."""
         m = len(self.levels)
         neg_cum = np.cumsum(self.bucket)  # negatives <= P[k] (k < m); total at m
-        points: dict[float, tuple[int, int]] = {}  # threshold -> (positives, negatives) <= it
-        for k in range(m):
-            prev_pos = int(self.pos_at_most[k - 1]) if k else 0
-            prev_neg = int(neg_cum[k - 1]) if k else 0
-            if self.gap_max[k] > -np.inf:  # the point just before P[k]
-                points[float(self.gap_max[k])] = (
-                    prev_pos, prev_neg + int(self.bucket[k] - self.tied[k]))
-            points[float(self.levels[k])] = (int(self.pos_at_most[k]), int(neg_cum[k]))
+        prev_pos = np.concatenate([[0], self.pos_at_most]).astype(np.int64)[:m]
+        prev_neg = np.concatenate([[0], neg_cum]).astype(np.int64)[:m]
+        has_gap = self.gap_max[:m] > -np.inf  # a point just before P[k]
+        parts_t = [self.gap_max[:m][has_gap], self.levels]
+        parts_pos = [prev_pos[has_gap], self.pos_at_most]
+        parts_neg = [(prev_neg + self.bucket[:m] - self.tied)[has_gap], neg_cum[:m]]
         if self.gap_max[m] > -np.inf:  # the last point, above every positive
-            points[float(self.gap_max[m])] = (self.n_pos, int(neg_cum[m]))
-        if np.isfinite(self.neg_min) and (m == 0 or self.neg_min < self.levels[0]):
-            points.setdefault(float(self.neg_min), (0, self.neg_min_count))  # the first point
-        thresholds = np.array(sorted(points), dtype=np.float64)
-        counts = np.array([points[t] for t in thresholds], dtype=np.int64).reshape(-1, 2)
+            parts_t.append([self.gap_max[m]])
+            parts_pos.append([self.n_pos])
+            parts_neg.append([neg_cum[m]])
+        first_is_negative = np.isfinite(self.neg_min) and (m == 0 or self.neg_min < self.levels[0])
+        if first_is_negative and not (m and has_gap[0] and self.gap_max[0] == self.neg_min):
+            parts_t.append([self.neg_min])  # the first point (unless it is gap 0's point)
+            parts_pos.append([0])
+            parts_neg.append([self.neg_min_count])
+        thresholds = np.concatenate([np.asarray(t, dtype=np.float64) for t in parts_t])
+        order = np.argsort(thresholds, kind="stable")  # thresholds are distinct
+        thresholds = thresholds[order]
+        counts = np.stack([np.concatenate([np.asarray(c, dtype=np.int64) for c in parts_pos]),
+                           np.concatenate([np.asarray(c, dtype=np.int64) for c in parts_neg])],
+                          axis=1)[order]
         tp = counts[:, 0] * self.weight
         fp = counts[:, 1] * self.weight
         denom = np.full(len(thresholds), int(denominator), dtype=np.int64)
