@@ -55,24 +55,30 @@ def _median_ms(fn, repeats: int) -> float:
     return 1e3 * float(np.median(times))
 
 
-def _pin_one_core() -> str:
+def _pin_one_core() -> tuple[str, set[int] | None]:
+    """Pin this process to one CPU; returns a label and the CPUs to restore afterwards."""
     if hasattr(os, "sched_setaffinity"):
-        cpu = max(os.sched_getaffinity(0))
+        before = os.sched_getaffinity(0)
+        cpu = max(before)
         os.sched_setaffinity(0, {cpu})
-        return f"cpu {cpu}"
-    return "not pinned"
+        return f"cpu {cpu}", before
+    return "not pinned", None
 
 
 def measure_here(descriptors: list[Descriptor], scans: list[np.ndarray], repeats: int = 5,
                  pair_repeats: int = 200) -> dict[str, Any]:
     """Per-scan extraction and single-pair times of each descriptor, in this process."""
-    pinned = _pin_one_core()
+    pinned, before = _pin_one_core()
     out: dict[str, Any] = {"pinned": pinned, "scans": len(scans),
                            "points_median": float(np.median([len(s) for s in scans])),
                            "descriptors": {}}
-    for desc in descriptors:
-        out["descriptors"][f"{desc.name}:{desc.preset}"] = _measure_one(
-            desc, scans, repeats, pair_repeats)
+    try:
+        for desc in descriptors:
+            out["descriptors"][f"{desc.name}:{desc.preset}"] = _measure_one(
+                desc, scans, repeats, pair_repeats)
+    finally:
+        if before is not None:
+            os.sched_setaffinity(0, before)
     return out
 
 
