@@ -67,6 +67,11 @@ def test_loopback_cluster_equals_default_scheduler(tmp_path, capsys, monkeypatch
         code, _, err = run_cli([*args, "--out", tmp_path / "cluster", "--scheduler", address],
                                capsys)
         assert code == 0, err
+        # protocol 1 alone takes the exhaustive search (its blocks are tasks too)
+        only_p1 = ["eval", seq, "--protocol", "1", "-d", "m2dp,scan-context", "--exclude", "10",
+                   "-q", "--scheduler", address, "--out", tmp_path / "cluster-p1"]
+        code, _, err = run_cli(only_p1, capsys)
+        assert code == 0, err
     finally:
         for proc in reversed(procs):
             proc.terminate()
@@ -81,6 +86,10 @@ def test_loopback_cluster_equals_default_scheduler(tmp_path, capsys, monkeypatch
     cluster = metrics(tmp_path / "cluster" / "metrics.json")
     assert len(default) == 4  # 2 descriptors x 2 protocols
     assert cluster == default  # every metric, count and threshold, exactly
+    p1_alone = [{k: v for k, v in r.items() if k != "match_source"}
+                for r in metrics(tmp_path / "cluster-p1" / "metrics.json")]
+    assert p1_alone == [{k: v for k, v in r.items() if k != "match_source"}
+                        for r in default if r["protocol"] == 1]
     p2 = [r for r in default if r["protocol"] == 2]
     assert all(r["n_positives"] > 0 and r["ap"] > 0.05 for r in p2)
     assert (tmp_path / "default" / "protocol2" / "m2dp" / "affinity.npy").is_file()

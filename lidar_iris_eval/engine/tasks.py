@@ -123,3 +123,48 @@ def stream_blocks(engine, descriptor, descriptors, template: StreamingPR,
             future.cancel()
     return {"acc": acc, "gathered": gathered, "mismatch": mismatch, "p1": p1,
             "evaluations": evaluations, "task_seconds": seconds}
+
+
+def protocol1_block(descriptor, descriptors, a: int, b: int, exclude: int):
+    """Best match of queries ``[a, b)`` over ``j <= i - exclude`` (the local pass's block)."""
+    from lidar_iris_eval.matching.blocks import _best_in_block, _pairwise
+
+    start = time.perf_counter()
+    d, y = _pairwise(descriptor, descriptors[a:b], descriptors[: b - exclude])
+    seconds = time.perf_counter() - start
+    return a, b, d.size, seconds, _best_in_block(d, y, np.arange(a, b), exclude)
+
+
+def best_matches_on_cluster(engine, descriptor, descriptors, exclude: int, pair_budget: int,
+                            progress: Callable[[int], object] | None = None):
+    """Protocol 1's exhaustive search with every block a task (same blocks, same results)."""
+    from distributed import as_completed
+
+    from lidar_iris_eval.matching.blocks import BestMatches, block_rows, query_blocks
+
+    client = engine.client
+    n = len(descriptors)
+    first = min(exclude, n)
+    queries = np.arange(first, n)
+    match = np.empty(len(queries), dtype=np.int64)
+    dist = np.empty(len(queries))
+    yaw = np.empty(len(queries))
+    [desc_f, descs_f] = client.scatter([descriptor, descriptors], broadcast=True, hash=False)
+    start = time.perf_counter()
+    futures = [client.submit(protocol1_block, desc_f, descs_f, a, b, exclude, pure=False)
+               for a, b in query_blocks(first, n, block_rows(n, pair_budget))]
+    evaluations = 0
+    try:
+        for future in as_completed(futures):
+            a, b, size, _, (m, d, y) = future.result()
+            k = slice(a - first, b - first)
+            match[k], dist[k], yaw[k] = m, d, y
+            evaluations += int(size)
+            if progress is not None:
+                progress(b - a)
+            future.release()
+    finally:
+        for future in futures:
+            future.cancel()
+    seconds = time.perf_counter() - start
+    return BestMatches(queries, match, dist, yaw, seconds, evaluations, "exhaustive")

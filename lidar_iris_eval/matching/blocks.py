@@ -155,8 +155,16 @@ def best_matches(
     A block of queries ``[a, b)`` is compared with the database ``[0, b - exclude)``
     (what its last query may see); the few pairs beyond each query's own
     limit are masked out, which wastes at most half a block per block.
+    With a Dask engine active (``--scheduler``) the blocks are cluster tasks.
     """
     _check_exclude(exclude)
+    from lidar_iris_eval import engine as engines
+
+    if engines.current() is not None:
+        from lidar_iris_eval.engine.tasks import best_matches_on_cluster
+
+        return best_matches_on_cluster(engines.current(), descriptor, descriptors, exclude,
+                                       pair_budget, progress)
     n = len(descriptors)
     queries = np.arange(min(exclude, n), n)
     match = np.empty(len(queries), dtype=np.int64)
