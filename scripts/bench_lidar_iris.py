@@ -7,6 +7,7 @@ Usage::
     .venv/bin/python scripts/bench_lidar_iris.py --no-full       # skip protocol 1/2 runs
     .venv/bin/python scripts/bench_lidar_iris.py --harmonics     # phase-correlation study
     .venv/bin/python scripts/bench_lidar_iris.py --search        # shift searches: cost, misses
+    .venv/bin/python scripts/bench_lidar_iris.py --sensors       # searches per sensor preset
 
 Figures (medians where repeated):
 
@@ -275,7 +276,6 @@ def search_study(scans, frames: int, block: int, rounds: int = 2, cases: int = 4
     variants = {
         "phase": dict(shift_search="phase"),
         "phase+refine": dict(shift_search="phase+refine"),
-        "refine, 3 peaks": dict(shift_search="phase+refine", refine_peaks=3),
     }
     searches = tuple(variants)
     descs = {s: get_descriptor("lidar-iris", **kw) for s, kw in variants.items()}
@@ -310,6 +310,50 @@ def search_study(scans, frames: int, block: int, rounds: int = 2, cases: int = 4
               f"max excess {excess.max():.4f}")
 
 
+def simulated_views(sensor: str, places: int, views: int, seed: int = 5):
+    """Scans of the simulated town with ``sensor``: ``views`` poses per place (up to
+    1.4 m off in x and y, any yaw). Returns ``[(place, points), ...]``."""
+    from lidar_iris_eval.simulate import build_scenario, resolve_config
+    from lidar_iris_eval.simulate.sensors import simulate_scan
+
+    scen = build_scenario(resolve_config("tiny-mixed", dict(sensor=sensor)))
+    rng = np.random.default_rng(seed)
+    out = []
+    for place, frame in enumerate(np.linspace(0, len(scen.poses) - 1, places).astype(int)):
+        for _ in range(views):
+            pose = scen.poses[frame].copy()
+            yaw = rng.uniform(0, 2 * np.pi)
+            turn = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0],
+                             [0, 0, 1.0]])
+            pose[:3, :3] = pose[:3, :3] @ turn
+            pose[:2, 3] += rng.uniform(-1.4, 1.4, 2)
+            scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(frame), pose, rng)
+            out.append((place, scan.points))
+    return out
+
+
+def sensors_study(places: int = 16, views: int = 4) -> None:
+    """Per sensor preset: same-place pairs at the exhaustive-best shift, per search."""
+    from lidar_iris_eval.sensors import SENSORS
+
+    print(f"\n== simulated same-place pairs ({places} places x {views} views per sensor, "
+          "<= 2 m apart, any yaw): share at the exhaustive best / within 0.01")
+    for sensor in SENSORS:
+        scans = simulated_views(sensor, places, views)
+        place = np.array([p for p, _ in scans])
+        pairs = (place[:, None] == place[None, :]) & ~np.eye(len(scans), dtype=bool)
+        oracle = get_descriptor("lidar-iris", sensor=sensor, shift_search="exhaustive")
+        descs = np.stack([oracle.compute(pts) for _, pts in scans])
+        best = oracle.pairwise(descs, descs)[0][pairs]
+        line = f"{sensor:8s} ({pairs.sum()} pairs, median best {np.median(best):.3f})"
+        for search in ("phase", "phase+refine"):
+            desc = get_descriptor("lidar-iris", sensor=sensor, shift_search=search)
+            excess = desc.pairwise(descs, descs)[0][pairs] - best
+            line += (f"  {search}: {np.mean(excess <= 0) * 100:5.1f}% / "
+                     f"{np.mean(excess <= 0.01) * 100:5.1f}%")
+        print(line, flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=4541)
@@ -321,9 +365,14 @@ def main() -> None:
     parser.add_argument("--harmonics", action="store_true", help="only the harmonics study")
     parser.add_argument("--search", action="store_true",
                         help="only the shift-search comparison (cost ratio, misses)")
+    parser.add_argument("--sensors", action="store_true",
+                        help="only the per-sensor-preset search study (simulated)")
     args = parser.parse_args()
 
     print(f"load average at start: {os.getloadavg()}")
+    if args.sensors:
+        sensors_study()
+        return
     scans = load_scans()
     if args.harmonics:
         harmonics_study(scans)

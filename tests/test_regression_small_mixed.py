@@ -41,17 +41,17 @@ def _gt(seq, capsys):
 #: the README's quick-start table (AP, F1max, R@100P, EP), to its 3 decimals; a change
 #: of any descriptor's numbers on this sequence must update the README with it
 README_TABLE = {
-    (1, "lidar-iris"): (0.970, 0.972, 0.946, 0.973),
+    (1, "lidar-iris"): (0.965, 0.972, 0.946, 0.973),
     (1, "scan-context"): (0.995, 0.995, 0.990, 0.995),
     (1, "m2dp"): (0.118, 0.207, 0.025, 0.512),
     (1, "esf"): (0.189, 0.309, 0.030, 0.515),
-    (2, "lidar-iris"): (0.873, 0.823, 0.536, 0.768),
+    (2, "lidar-iris"): (0.847, 0.807, 0.518, 0.759),
     (2, "scan-context"): (0.916, 0.902, 0.638, 0.819),
     (2, "m2dp"): (0.214, 0.238, 0.014, 0.507),
     (2, "esf"): (0.166, 0.208, 0.003, 0.502),
 }
 #: README: top-1 accuracy of protocol 1 on the same- / reverse-direction revisits
-README_TOP1 = {"lidar-iris": (0.93, 1.00), "scan-context": (0.99, 1.00),
+README_TOP1 = {"lidar-iris": (0.92, 1.00), "scan-context": (0.99, 1.00),
                "m2dp": (0.53, 0.03), "esf": (0.29, 0.44)}
 
 

@@ -159,7 +159,7 @@ class LidarIrisParams:
     #: ``refine_peaks`` highest maxima of a band correlation (see
     #: :func:`band_spectra`), then a descent of the exact distance one column at a
     #: time from the best of them; "exhaustive": all ``sectors`` shifts (the
-    #: oracle, about 25x slower)
+    #: oracle, 25-40x slower)
     shift_search: str = "phase+refine"
     #: band-correlation maxima tried by "phase+refine" and the harmonics it uses;
     #: chosen on simulated hdl64, vlp16 and os0-128 sequences against the
