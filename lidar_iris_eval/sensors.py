@@ -127,7 +127,7 @@ class ScanGeometry:
     lowest: float  # elevation of the lowest beam (0.2nd percentile of all points)
     highest_far: float  # 99.8th percentile of the elevation of points beyond 20 m
     beams: int  # peaks of the elevation histogram of points beyond 3 m (0.05 deg bins)
-    coverage: int  # 1-degree azimuth bins holding at least one point
+    coverage: int  # degrees of azimuth: 360 minus the widest empty sector
 
     def describe(self) -> str:
         return (f"elevations {self.lowest:+.1f}..{self.highest_far:+.1f} deg, about "
@@ -153,8 +153,11 @@ def scan_geometry(points: np.ndarray) -> ScanGeometry:
         floor = 0.1 * np.percentile(smooth[smooth > 0], 90)
         peak = (smooth > np.roll(smooth, 1)) & (smooth >= np.roll(smooth, -1)) & (smooth > floor)
         beams = int(peak.sum())
-    azimuth = np.floor(np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))).astype(int) % 360
-    return ScanGeometry(lowest, highest, beams, len(np.unique(azimuth)))
+    # coverage: the full turn minus the widest empty sector (coarse azimuth
+    # steps leave small gaps everywhere; a partial field leaves one big one)
+    azimuth = np.sort(np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])))
+    gaps = np.diff(np.r_[azimuth, azimuth[0] + 360.0])
+    return ScanGeometry(lowest, highest, beams, int(round(360.0 - gaps.max())))
 
 
 def sensor_score(spec: SensorSpec, geo: ScanGeometry) -> float:
@@ -219,7 +222,7 @@ def fit_warnings(scans: list[np.ndarray], z_low: float, z_high: float,
             f"{z_low:g}..{z_high:g} m (more than {outside_limit:.0%}): pick the --sensor "
             f"preset of your LiDAR or set lidar-iris.z_low/z_high"
         )
-    if min(coverage, default=360) < 355:
+    if min(coverage, default=360) < 315:
         problems.append(
             f"the scans cover only about {min(coverage)} of 360 degrees of azimuth: yaw-"
             f"invariant descriptors see a partial turn (fine for a forward-looking sensor "

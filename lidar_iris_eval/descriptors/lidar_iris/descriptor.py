@@ -558,8 +558,8 @@ class LidarIris(Descriptor):
         """The base checks, then a warning when the first scans do not fit the preset.
 
         More than 10 % of a scan's points outside ``z_low..z_high`` (clipped into
-        the end bins, so the height code is lost), or scans covering less than a
-        full turn, are reported once per sequence and parameter set.
+        the end bins, so the height code is lost), or scans with an empty sector
+        wider than 45 degrees, are reported once per sequence and parameter set.
         """
         super().check_inputs(sequence)
         key = (self.params, str(getattr(sequence, "path", id(sequence))))
