@@ -136,6 +136,24 @@ def projection_planes(azimuths: int, elevations: int) -> tuple[np.ndarray, np.nd
     return px.T, py.T
 
 
+def _projection_setup(aligned: np.ndarray, params: M2DPParams):
+    """What both binning routes share: float32 points and plane axes, and the bin scales.
+
+    Kept in one place so the compiled route and its NumPy reference cannot
+    drift apart in the float32 constants their bitwise equality depends on.
+    """
+    t, r = params.angular_bins, params.radial_bins
+    px, py = projection_planes(params.azimuths, params.elevations)
+    max_rho = float(np.sqrt(np.max(np.einsum("ij,ij->i", aligned, aligned))))
+    if not max_rho > 0.0:
+        raise LirisError("points", "M2DP needs points that are not all identical")
+    pts = np.asarray(aligned, dtype=np.float32)
+    theta_scale = np.float32(t / (2 * np.pi))
+    rho_scale = np.float32(r * r / max_rho)
+    return (pts, px.astype(np.float32), py.astype(np.float32), theta_scale,
+            np.float32(np.pi), rho_scale)
+
+
 def signature_matrix(aligned: np.ndarray, params: M2DPParams) -> np.ndarray:
     """The ``(p*q, l*t)`` matrix of bin fractions: one row per plane, column ``r*t + s``
     for ring ``r`` and sector ``s``.
@@ -155,17 +173,8 @@ def signature_matrix(aligned: np.ndarray, params: M2DPParams) -> np.ndarray:
     clipped, which avoids a search over edges.
     """
     t, r = params.angular_bins, params.radial_bins
-    px, py = projection_planes(params.azimuths, params.elevations)
-    n_planes = px.shape[1]
-    max_rho = float(np.sqrt(np.max(np.einsum("ij,ij->i", aligned, aligned))))
-    if not max_rho > 0.0:
-        raise LirisError("points", "M2DP needs points that are not all identical")
-
-    px32, py32 = px.astype(np.float32), py.astype(np.float32)
-    pts = np.asarray(aligned, dtype=np.float32)
-    theta_scale = np.float32(t / (2 * np.pi))
-    pi32 = np.float32(np.pi)
-    rho_scale = np.float32(r * r / max_rho)
+    pts, px32, py32, theta_scale, pi32, rho_scale = _projection_setup(aligned, params)
+    n_planes = px32.shape[1]
     # int32 counters fit the L1 cache (twice as fast as int64); exact below 2**31 points
     counts = np.zeros((n_planes, t * r), dtype=np.int32 if len(pts) < 2**31 else np.int64)
     for start in range(0, len(pts), _CHUNK):
@@ -178,16 +187,8 @@ def signature_matrix(aligned: np.ndarray, params: M2DPParams) -> np.ndarray:
 def signature_matrix_numpy(aligned: np.ndarray, params: M2DPParams) -> np.ndarray:
     """The NumPy route of :func:`signature_matrix` (its bitwise reference, tested)."""
     t, r = params.angular_bins, params.radial_bins
-    px, py = projection_planes(params.azimuths, params.elevations)
-    n_planes = px.shape[1]
-    max_rho = float(np.sqrt(np.max(np.einsum("ij,ij->i", aligned, aligned))))
-    if not max_rho > 0.0:
-        raise LirisError("points", "M2DP needs points that are not all identical")
-    px32, py32 = px.astype(np.float32), py.astype(np.float32)
-    pts = np.asarray(aligned, dtype=np.float32)
-    theta_scale = np.float32(t / (2 * np.pi))
-    pi32 = np.float32(np.pi)
-    rho_scale = np.float32(r * r / max_rho)
+    pts, px32, py32, theta_scale, pi32, rho_scale = _projection_setup(aligned, params)
+    n_planes = px32.shape[1]
     offsets = (np.arange(n_planes, dtype=np.int32) * (t * r))[None, :]
     counts = np.zeros(n_planes * t * r, dtype=np.int64)
     for start in range(0, len(pts), _CHUNK):
