@@ -39,6 +39,21 @@ def find_kitti_poses(seq_dir: Path) -> Path | None:
     return beside if beside.is_file() else None
 
 
+def read_camera_poses_and_calib(
+    pose_path: Path, calib_path: Path, n_scans: int, scans_dir: Path
+) -> tuple[np.ndarray, np.ndarray]:
+    """KITTI camera-frame poses (one per scan, checked) and the ``Tr`` that converts them.
+
+    Shared by every reader whose poses are KITTI camera poses: the KITTI
+    layout and the GOSMatch object layout.
+    """
+    camera_poses = read_kitti_poses(pose_path)
+    check_counts(n_scans, len(camera_poses), scans_dir, pose_path)
+    if not calib_path.is_file():
+        raise LirisError(calib_path, "calibration file not found (needed for LiDAR-frame poses)")
+    return camera_poses, read_calib(calib_path)
+
+
 def open_kitti(
     path: str | Path, poses: str | Path | None = None, calib: str | Path | None = None
 ) -> Sequence:
@@ -55,12 +70,10 @@ def open_kitti(
         raise LirisError(
             seq_dir, f"no poses: expected {seq_dir / 'poses.txt'} or ../../poses/{seq_dir.name}.txt"
         )
-    camera_poses = read_kitti_poses(pose_path)
-    check_counts(len(scan_paths), len(camera_poses), seq_dir / "velodyne", pose_path)
     calib_path = Path(calib) if calib is not None else seq_dir / "calib.txt"
-    if not calib_path.is_file():
-        raise LirisError(calib_path, "calibration file not found (needed for LiDAR-frame poses)")
-    tr = read_calib(calib_path)
+    camera_poses, tr = read_camera_poses_and_calib(
+        pose_path, calib_path, len(scan_paths), seq_dir / "velodyne"
+    )
     times = None
     times_path = seq_dir / "times.txt"
     if times_path.is_file():

@@ -26,8 +26,9 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.errors import options as option_names
-from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_kitti_poses
-from lidar_iris_eval.io.sequence import Sequence, check_counts, hash_file_samples
+from lidar_iris_eval.io.kitti import read_camera_poses_and_calib
+from lidar_iris_eval.io.poses import camera_to_lidar
+from lidar_iris_eval.io.sequence import Sequence, hash_file_samples
 
 BOW_FILE = "bow.txt"
 CENTROIDS_DIR = "centroids"
@@ -174,12 +175,8 @@ def open_objects(
     pose_path = Path(poses) if poses is not None else root / "poses.txt"
     if not pose_path.is_file():
         raise LirisError(pose_path, "pose file not found (KITTI camera-frame poses needed)")
-    camera_poses = read_kitti_poses(pose_path)
-    check_counts(len(scan_paths), len(camera_poses), folder, pose_path)
     calib_path = Path(calib) if calib is not None else root / "calib.txt"
-    if not calib_path.is_file():
-        raise LirisError(calib_path, "calibration file not found (needed for LiDAR-frame poses)")
-    tr = read_calib(calib_path)
+    camera_poses, tr = read_camera_poses_and_calib(pose_path, calib_path, len(scan_paths), folder)
     return ObjectSequence(
         name=root.name,
         path=root,
