@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -56,3 +61,36 @@ def assert_one_line_error(code: int, err: str, *fragments: str) -> None:
     assert "Traceback" not in err
     for fragment in fragments:
         assert fragment in lines[0], (fragment, lines[0])
+
+
+def kill_extract_mid_run(sequence: Path, name: str, target: str, cache_dir: Path,
+                         chunk_size: int, script_dir: Path, timeout: float = 60.0) -> int:
+    """Run ``liris extract`` with descriptor ``target`` (registered as ``name``) in a child
+    process, SIGKILL it once two chunks are stored, and return how many chunks were stored.
+
+    Asserts the child was still running when killed and left no final cache file, so a
+    resumed run must really resume.
+    """
+    tests = Path(__file__).resolve().parent
+    script = script_dir / "run_extract.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(tests)!r})
+        from lidar_iris_eval.descriptors import register_descriptor
+        register_descriptor({name!r}, {target!r})
+        from lidar_iris_eval.cli import main
+        main(["extract", {str(sequence)!r}, "--descriptor", {name!r}, "--cache-dir",
+              {str(cache_dir)!r}, "--chunk-size", {str(chunk_size)!r}, "--quiet"])
+    """))
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    deadline = time.time() + timeout
+    while time.time() < deadline and proc.poll() is None:
+        if len(list(cache_dir.glob("*.partial/chunk-*.npz"))) >= 2:
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=10)
+    assert list(cache_dir.glob("*.npz")) == []  # no final cache file
+    return len(list(cache_dir.glob("*.partial/chunk-*.npz")))

@@ -3,24 +3,17 @@
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
-import textwrap
-import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import kill_extract_mid_run
 from test_protocols import SlowToyHist, ToyHist, ToyParams, two_pass_sequence
 
 from lidar_iris_eval.cache import CacheKey, DescriptorCache, read_arrays, write_arrays
 from lidar_iris_eval.errors import LirisWarning
 from lidar_iris_eval.extract import cache_key, extract
 from lidar_iris_eval.io import open_sequence
-
-TESTS = Path(__file__).resolve().parent
 
 
 @pytest.fixture
@@ -152,30 +145,8 @@ def test_killed_extract_resumes_to_identical_descriptors(tmp_path):
     """SIGKILL ``liris extract`` mid-run, rerun it, compare with an uninterrupted run."""
     root = two_pass_sequence(tmp_path / "seq", n_per_pass=20, seed=3)
     cache_dir = tmp_path / "cache"
-    script = tmp_path / "run_extract.py"
-    script.write_text(textwrap.dedent(f"""
-        import sys
-        sys.path.insert(0, {str(TESTS)!r})
-        from lidar_iris_eval.descriptors import register_descriptor
-        register_descriptor("toy", "test_protocols:SlowToyHist")
-        from lidar_iris_eval.cli import main
-        main(["extract", {str(root)!r}, "--descriptor", "toy", "--cache-dir",
-              {str(cache_dir)!r}, "--chunk-size", "4", "--quiet"])
-    """))
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
-    deadline = time.time() + 60
-    chunks: list[Path] = []
-    while time.time() < deadline and proc.poll() is None:
-        chunks = list(cache_dir.glob("*.partial/chunk-*.npz"))
-        if len(chunks) >= 2:
-            break
-        time.sleep(0.02)
-    assert proc.poll() is None, proc.communicate()
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=10)
-    assert list(cache_dir.glob("*.npz")) == []  # no final cache file
-    done = len(list(cache_dir.glob("*.partial/chunk-*.npz")))
+    done = kill_extract_mid_run(root, "toy", "test_protocols:SlowToyHist", cache_dir, 4,
+                                tmp_path)
     assert 2 <= done < 10
 
     seq = open_sequence(root)

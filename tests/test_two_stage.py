@@ -9,18 +9,13 @@ are known exactly.
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
-import sys
-import textwrap
-import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import run_cli
+from conftest import kill_extract_mid_run, run_cli
 from toy_two_stage import SlowToyObjects, ToyObjects
 
 from lidar_iris_eval.descriptors import register_descriptor
@@ -31,7 +26,6 @@ from lidar_iris_eval.io import open_sequence
 from lidar_iris_eval.matching.geometry import invert_pose
 from lidar_iris_eval.simulate import simulate_sequence
 
-TESTS = Path(__file__).resolve().parent
 pytestmark = pytest.mark.slow
 
 
@@ -129,28 +123,8 @@ def test_txt_export_and_yaw_only_methods(toy_seq, tmp_path, capsys):
 
 def test_extraction_killed_and_resumed_gives_identical_features(toy_seq, tmp_path):
     cache_dir = tmp_path / "cache"
-    script = tmp_path / "run_extract.py"
-    script.write_text(textwrap.dedent(f"""
-        import sys
-        sys.path.insert(0, {str(TESTS)!r})
-        from lidar_iris_eval.descriptors import register_descriptor
-        register_descriptor("toy-objects", "toy_two_stage:SlowToyObjects")
-        from lidar_iris_eval.cli import main
-        main(["extract", {str(toy_seq)!r}, "--descriptor", "toy-objects", "--cache-dir",
-              {str(cache_dir)!r}, "--chunk-size", "20", "--quiet"])
-    """))
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
-    deadline = time.time() + 120
-    while time.time() < deadline and proc.poll() is None:
-        if len(list(cache_dir.glob("*.partial/chunk-*.npz"))) >= 2:
-            break
-        time.sleep(0.02)
-    assert proc.poll() is None, proc.communicate()
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=10)
-    assert list(cache_dir.glob("*.npz")) == []
-    done = len(list(cache_dir.glob("*.partial/chunk-*.npz")))
+    done = kill_extract_mid_run(toy_seq, "toy-objects", "toy_two_stage:SlowToyObjects",
+                                cache_dir, 20, tmp_path, timeout=120)
     assert 2 <= done < 7
 
     seq = open_sequence(toy_seq)
