@@ -8,6 +8,8 @@ Usage::
     .venv/bin/python scripts/bench_lidar_iris.py --harmonics     # phase-correlation study
     .venv/bin/python scripts/bench_lidar_iris.py --search        # shift searches: cost, misses
     .venv/bin/python scripts/bench_lidar_iris.py --sensors       # searches per sensor preset
+    .venv/bin/python scripts/bench_lidar_iris.py --pairs SEQ --sensor os0-128
+                                                # every pair < 4 m of a sequence vs the oracle
 
 Figures (medians where repeated):
 
@@ -354,6 +356,44 @@ def sensors_study(places: int = 16, views: int = 4) -> None:
         print(line, flush=True)
 
 
+def pairs_study(path: str, sensor: str, peaks: tuple[int, ...] = (2, 3, 4)) -> None:
+    """Every pair < 4 m of a sequence against the exhaustive oracle, split into
+    recognisable and weak pairs (:mod:`lidar_iris_eval.descriptors.lidar_iris.oracle`),
+    per metre band, for ``phase`` and ``phase+refine`` with several band peaks.
+
+    CPU seconds of the pairs' comparisons are printed as ratios against ``phase``
+    in the same run (small: only the listed pairs are compared)."""
+    from lidar_iris_eval.descriptors.lidar_iris.oracle import search_agreement
+    from lidar_iris_eval.io import open_sequence
+
+    seq = open_sequence(path)
+    base = get_descriptor("lidar-iris", sensor=sensor)
+    descs = np.stack([base.compute(seq[i]) for i in range(len(seq))])
+    positions = seq.positions("lidar")
+    variants = {"phase": dict(shift_search="phase")}
+    variants.update({f"phase+refine, {k} peaks": dict(refine_peaks=k) for k in peaks})
+    print(f"\n== {path} ({len(seq)} frames, sensor {sensor}): pairs < 4 m against the oracle; "
+          "exact / within 0.01")
+    for name, kw in variants.items():
+        desc = get_descriptor("lidar-iris", sensor=sensor, **kw)
+        res = search_agreement(desc, descs, positions)
+        rec = res.recognisable
+        line = (f"{name:24s} all {len(rec)}: {res.rate() * 100:5.1f} / "
+                f"{res.rate(tolerance=0.01) * 100:5.1f} %  recognisable {rec.sum()}: "
+                f"{res.rate(rec) * 100:6.2f} %  weak {(~rec).sum()}: "
+                f"{res.rate(~rec) * 100:5.1f} / {res.rate(~rec, 0.01) * 100:5.1f} %")
+        print(line, flush=True)
+    print(f"recognisable: oracle distance < {res.threshold:.3f} (1st percentile of "
+          f"{res.unrelated.size} unrelated pairs > 15 m apart; their median "
+          f"{np.median(res.unrelated):.3f}); weak pairs' median best "
+          f"{np.median(res.best[~rec]):.3f}")
+    for lo in range(4):
+        band = (res.metres >= lo) & (res.metres < lo + 1)
+        print(f"  {lo}-{lo + 1} m: {band.sum():4d} pairs, {np.mean(rec[band]) * 100:5.1f} % "
+              f"recognisable, median best {np.median(res.best[band]):.3f}, default search "
+              f"exact {res.rate(band) * 100:5.1f} %")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=4541)
@@ -367,11 +407,17 @@ def main() -> None:
                         help="only the shift-search comparison (cost ratio, misses)")
     parser.add_argument("--sensors", action="store_true",
                         help="only the per-sensor-preset search study (simulated)")
+    parser.add_argument("--pairs", metavar="SEQUENCE",
+                        help="only the study of every pair < 4 m of SEQUENCE against the oracle")
+    parser.add_argument("--sensor", default="hdl64", help="sensor preset for --pairs")
     args = parser.parse_args()
 
     print(f"load average at start: {os.getloadavg()}")
     if args.sensors:
         sensors_study()
+        return
+    if args.pairs:
+        pairs_study(args.pairs, args.sensor)
         return
     scans = load_scans()
     if args.harmonics:

@@ -145,3 +145,39 @@ def test_reverse_and_both_find_rotated_copies_like_the_authors(kitti_scans, mode
     # a reverse revisit: the same place seen after a U-turn (turned 180 deg, moved 1.5 m)
     d, yaw = desc.distance(base, desc.compute(rotate_translate(kitti_scans[94], 180, 1.5, 0)))
     assert d < 0.3 and abs(yaw - 180) <= 2, (d, yaw)  # unrelated places: > 0.4
+
+
+def simulated_sequence(sensor: str, every: int = 2, seed: int = 0):
+    """Scans and LiDAR positions of the tiny-mixed town (same and reverse revisits, up
+    to 3 m lateral offset) with ``sensor``, at 360 azimuth steps, every 2nd frame."""
+    scen = build_scenario(resolve_config("tiny-mixed", dict(sensor=sensor, azimuth_steps=360)))
+    rng = np.random.default_rng(seed)
+    frames = range(0, len(scen.poses), every)
+    scans = [
+        simulate_scan(scen.sensor, scen.world.ground, scen.primitives(f), scen.poses[f], rng).points
+        for f in frames
+    ]
+    return scans, np.array([scen.poses[f][:3, 3] for f in frames])
+
+
+@pytest.mark.parametrize("sensor", ["vlp16", "os0-128"])
+def test_every_recognisable_pair_under_4m_of_a_sequence_reaches_the_exhaustive_best(sensor):
+    """The issue's bar on a whole simulated sequence: every pair < 4 m apart whose
+    best distance beats 99 % of unrelated places (> 15 m apart) is searched to the
+    exhaustive best on >= 99 % of pairs. The old phase window fails this (83-85 %
+    measured at 1024 azimuth steps), so the test can fail. Weak pairs (best no better
+    than unrelated places: flat curves) are only required to be close on average."""
+    from lidar_iris_eval.descriptors.lidar_iris.oracle import search_agreement
+
+    scans, positions = simulated_sequence(sensor)
+    desc = get_descriptor("lidar-iris", sensor=sensor)
+    descs = np.stack([desc.compute(p) for p in scans])
+    res = search_agreement(desc, descs, positions)
+    rec = res.recognisable
+    assert np.all(res.excess >= 0)  # the oracle is never beaten
+    assert rec.sum() >= 300 and res.unrelated.size == 2000, (rec.sum(), res.unrelated.size)
+    assert res.rate(rec) >= 0.99, res.rate(rec)
+    assert res.rate(~rec, tolerance=0.01) >= 0.9, res.rate(~rec, tolerance=0.01)
+    phase = get_descriptor("lidar-iris", sensor=sensor, shift_search="phase")
+    old = search_agreement(phase, descs, positions)
+    assert old.rate(rec) < res.rate(rec), (old.rate(rec), res.rate(rec))
