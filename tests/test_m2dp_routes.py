@@ -97,6 +97,17 @@ def test_degenerate_plane_row_is_the_origin_bin():
     np.testing.assert_array_equal(ref[5], expected)
 
 
+def test_coinciding_planes_are_binned_once_bitwise():
+    # the elevation-90 degree planes of the 4 azimuths share the normal +z: one binning
+    cloud = street(np.random.default_rng(8), 6000)
+    merged = signature_matrix_fast(cloud, M2DPParams())
+    np.testing.assert_array_equal(merged, signature_matrix_fast(cloud, M2DPParams(),
+                                                                merge_planes=False))
+    for k in (31, 47, 63):
+        np.testing.assert_array_equal(merged[k], merged[15])
+    assert not np.array_equal(merged[14], merged[15])
+
+
 def test_route_selection_and_fallback():
     cloud = street(np.random.default_rng(5), 5000)
     exact = M2DP(M2DPParams(route="atan2")).compute(cloud)

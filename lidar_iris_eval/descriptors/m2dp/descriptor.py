@@ -254,14 +254,15 @@ def fast_route_applies(params: M2DPParams) -> bool:
     return params.route == "fast" and params.angular_bins % 4 == 0
 
 
-def signature_matrix_fast(points: np.ndarray, params: M2DPParams) -> np.ndarray:
+def signature_matrix_fast(points: np.ndarray, params: M2DPParams,
+                          merge_planes: bool = True) -> np.ndarray:
     """The signature of raw ``points`` by the ``fast`` route (see :class:`M2DPParams`).
 
     Same meaning as ``signature_matrix(pca_align(points), params)``; the
     votes differ only within float32 rounding of a bin edge (tested on random
     clouds and the real scans). Instead of building the aligned float64 cloud,
     one compiled pass takes the centroid and scatter matrix, the PCA rotation
-    is folded into the 64 planes' axes (``x = (p - mean) @ (axes @ px)``), and
+    is folded into the planes' axes (``x = (p - mean) @ (axes @ px)``), and
     :func:`.kernels.count_bins_compare` bins each projection by comparisons
     against the squared ring edges and the in-quadrant sector edges.
 
@@ -271,6 +272,9 @@ def signature_matrix_fast(points: np.ndarray, params: M2DPParams) -> np.ndarray:
         Finite points in the sensor frame (extra columns ignored).
     params : M2DPParams
         ``angular_bins`` must be a multiple of 4.
+    merge_planes : bool
+        Bin planes whose float32 axes coincide once (same votes, bitwise;
+        ``False`` bins every plane, for the test that checks it).
     """
     t, r = params.angular_bins, params.radial_bins
     if t % 4:
@@ -280,15 +284,25 @@ def signature_matrix_fast(points: np.ndarray, params: M2DPParams) -> np.ndarray:
         raise LirisError("points", "M2DP needs points that are not all identical")
     axes = principal_axes(scatter)
     px, py = projection_planes(params.azimuths, params.elevations)
-    ax = np.ascontiguousarray((axes @ px).astype(np.float32))
-    ay = np.ascontiguousarray((axes @ py).astype(np.float32))
+    # Planes whose float32 axes coincide vote identically: bin each once. (The
+    # elevation-90 degree planes of every azimuth share the normal +z: 61 of 64.)
+    both = np.vstack([axes @ px, axes @ py]).astype(np.float32)
+    if merge_planes:
+        unique, first, inverse = np.unique(both, axis=1, return_index=True, return_inverse=True)
+    else:
+        unique, first, inverse = both, np.arange(both.shape[1]), np.arange(both.shape[1])
+    order = np.argsort(first)  # keep the planes in their order: same memory walk
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    both = np.ascontiguousarray(unique[:, order])
+    ax, ay = both[:3], both[3:]
     # ring k starts at maxRho * (k/l)**2, so at maxRho**2 * (k/l)**4 in squared radius
     inf = (np.float32(np.inf),)
     ring_edges2 = tuple(np.float32(max_r2 * (k / r) ** 4) for k in range(1, r)) or inf
     tans = tuple(np.float32(np.tan(2 * np.pi * j / t)) for j in range(1, t // 4)) or inf
     counts = np.zeros((ax.shape[1], t * r), dtype=np.int32 if len(points) < 2**31 else np.int64)
     kernels.count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts)
-    return counts / len(points)
+    return counts[rank[inverse.ravel()]] / len(points)
 
 
 def descriptor_from_signature(signature: np.ndarray, svd_sign: str = "positive") -> np.ndarray:
