@@ -65,7 +65,7 @@ the tolerance). Against a literal float64 reading of the authors' code the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -250,8 +250,14 @@ def signature_matrix_numpy(aligned: np.ndarray, params: M2DPParams) -> np.ndarra
 
 
 def fast_route_applies(params: M2DPParams) -> bool:
-    """True when :func:`signature_matrix_fast` can bin with ``params`` (``t`` a multiple of 4)."""
-    return params.route == "fast" and params.angular_bins % 4 == 0
+    """True when :func:`signature_matrix_fast` can bin with ``params``.
+
+    It needs ``t`` a multiple of 4 (quadrant symmetry of the sector edges)
+    and fewer than 2**24 counters (flat indices are formed in float32).
+    """
+    p = params
+    cells = p.azimuths * p.elevations * p.angular_bins * p.radial_bins
+    return p.route == "fast" and p.angular_bins % 4 == 0 and cells <= 2**24
 
 
 def signature_matrix_fast(points: np.ndarray, params: M2DPParams,
@@ -271,14 +277,15 @@ def signature_matrix_fast(points: np.ndarray, params: M2DPParams,
     points : (N, 3+) float32 or float64 array
         Finite points in the sensor frame (extra columns ignored).
     params : M2DPParams
-        ``angular_bins`` must be a multiple of 4.
+        Must pass :func:`fast_route_applies` (its ``route`` is not looked at).
     merge_planes : bool
         Bin planes whose float32 axes coincide once (same votes, bitwise;
         ``False`` bins every plane, for the test that checks it).
     """
     t, r = params.angular_bins, params.radial_bins
-    if t % 4:
-        raise ValueError(f"the fast route needs angular_bins divisible by 4, got {t}")
+    if not fast_route_applies(replace(params, route="fast")):
+        raise ValueError(f"the fast route needs angular_bins divisible by 4 and at most 2**24 "
+                         f"counters, got {params}")
     mean, scatter, max_r2 = kernels.moments(points)
     if not max_r2 > 0.0:
         raise LirisError("points", "M2DP needs points that are not all identical")
@@ -301,7 +308,9 @@ def signature_matrix_fast(points: np.ndarray, params: M2DPParams,
     ring_edges2 = tuple(np.float32(max_r2 * (k / r) ** 4) for k in range(1, r)) or inf
     tans = tuple(np.float32(np.tan(2 * np.pi * j / t)) for j in range(1, t // 4)) or inf
     counts = np.zeros((ax.shape[1], t * r), dtype=np.int32 if len(points) < 2**31 else np.int64)
-    kernels.count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts)
+    flat = np.empty((ax.shape[1], kernels.BLOCK),
+                    dtype=np.uint16 if counts.size <= 2**16 else np.uint32)
+    kernels.count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts, flat)
     return counts[rank[inverse.ravel()]] / len(points)
 
 

@@ -110,7 +110,8 @@ def moments(points):  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"})
-def count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts):  # pragma: no cover
+def count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts,
+                       flat):  # pragma: no cover
     """Add every point's bin on every plane to ``counts`` (``(planes, r*t)`` integers).
 
     Parameters
@@ -128,6 +129,13 @@ def count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts):  # p
         ``maxRho**2 * (k/l)**4`` for ``k = 1 .. l - 1`` (padded with ``inf``).
     t : int
         Sectors, a multiple of 4.
+    counts : (planes, l*t) int32 or int64
+        Vote counters, added to.
+    flat : (planes, BLOCK) uint16 or uint32
+        Scratch for one block's flat counter indices; unsigned, so indexing
+        ``counts`` needs no negative-index check (uint16 when
+        ``counts.size <= 65536``, half the cache lines; both made the
+        increments measurably faster than int32).
 
     Notes
     -----
@@ -147,7 +155,6 @@ def count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts):  # p
     row_len = counts.shape[1]
     m0, m1, m2 = mean[0], mean[1], mean[2]
     centred = np.empty((3, BLOCK), dtype=np.float32)
-    flat = np.empty((planes, BLOCK), dtype=np.int32)
     zero = np.float32(0.0)
     one = np.float32(1.0)
     half = np.float32(t // 2)
@@ -182,7 +189,7 @@ def count_bins_compare(points, mean, ax, ay, tans, ring_edges2, t, counts):  # p
                 lower = half - one - q if x >= zero else q
                 sector = upper if y >= zero else lower
                 sector = half if r2 == zero else sector  # atan2(0, 0) = 0
-                row[i] = np.int32(offset + ring * width + sector)
+                row[i] = offset + ring * width + sector  # exact: an integer below 2**24
         # votes point by point: the 64 planes' counters are distinct, so no
         # increment waits for the previous one (consecutive points of a scan
         # mostly fall in the same bin of a plane)
