@@ -1,21 +1,23 @@
 #!/usr/bin/env python
-"""Extraction and single-pair time: today's code vs the previous NumPy routes, same run.
+"""Extraction and single-pair time: today's code vs the routes it replaced, same run.
 
 Usage::
 
     taskset -c 1 python scripts/bench_extraction.py [--scans DIR] [--rounds 7] [--json FILE]
+        [--descriptors scan-context,m2dp,esf]
 
 On a shared machine absolute times move with the load, so each measurement
-alternates the current implementation and the previous one (the NumPy
-routes the compiled kernels replaced, still in the code as their bitwise
-references) round by round, on the same real KITTI scans (default
+alternates the current implementation and the previous one (the routes
+the current ones replaced, still in the code as their references) round
+by round, on the same real KITTI scans (default
 ``../shared/data/kitti/samples/00/velodyne``) in one process with one
 BLAS/numba thread; the ratio previous / current is the speed-up. The
 authors' C++ figures (:data:`lidar_iris_eval.bench.extraction.CPP_FIGURES`)
 are printed next to the medians.
 
 Previous routes: Scan Context's sort-based voxel grid and the batched
-``pairwise`` for one pair; M2DP's ``signature_matrix_numpy``; ESF's
+``pairwise`` for one pair; M2DP's ``atan2`` route (float64 aligned cloud,
+float32 ``arctan2``, compiled binning: the previous release's default); ESF's
 ``trace_lines_numpy``.
 """
 
@@ -45,11 +47,11 @@ DEFAULT_SCANS = Path(__file__).resolve().parents[2] / "shared/data/kitti/samples
 
 @contextlib.contextmanager
 def previous(name: str):
-    """Swap the compiled route of ``name`` for the NumPy route it replaced."""
+    """Swap the current route of ``name`` for the route it replaced."""
     if name == "scan-context":
         module, attr, old = sc_module.voxel, "voxel_centroids", lambda *a, **k: None
-    elif name == "m2dp":
-        module, attr, old = m2dp_module, "signature_matrix", m2dp_module.signature_matrix_numpy
+    elif name == "m2dp":  # the atan2 route (route: atan2), which the fast route replaced
+        module, attr, old = m2dp_module, "fast_route_applies", lambda params: False
     else:
         module, attr, old = esf_module, "trace_lines", esf_module.trace_lines_numpy
     new = getattr(module, attr)
@@ -104,6 +106,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--pair-calls", type=int, default=300)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--descriptors", default="scan-context,m2dp,esf",
+                        help="comma-separated subset of scan-context,m2dp,esf")
     args = parser.parse_args()
     pinned = "not pinned"
     if hasattr(os, "sched_getaffinity"):
@@ -114,7 +118,7 @@ def main() -> None:
         raise SystemExit(f"no .bin scans in {args.scans}")
     report = {"scans": len(scans), "points_median": float(np.median([len(s) for s in scans])),
               "cpu": pinned, "load_average_start": list(os.getloadavg()), "rows": {}}
-    for name in ("scan-context", "m2dp", "esf"):
+    for name in args.descriptors.split(","):
         report["rows"][name] = measure(name, scans, args.rounds, args.pair_calls)
     report["load_average_end"] = list(os.getloadavg())
     print(f"{report['scans']} scans of ~{report['points_median']:.0f} points, {pinned}, "

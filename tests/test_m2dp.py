@@ -17,6 +17,7 @@ from lidar_iris_eval.descriptors.m2dp import (
     projection_planes,
     signature_matrix,
 )
+from lidar_iris_eval.descriptors.m2dp.descriptor import signature_matrix_fast
 from lidar_iris_eval.errors import LirisError, LirisWarning
 
 SAMPLES = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "samples" / "00"
@@ -254,10 +255,12 @@ def test_float32_fast_path_matches_literal_float64(kitti):
     scans, _ = kitti
     for key in ("94", "198"):
         aligned = pca_align(scans[key])
-        fast = signature_matrix(aligned, M2DPParams())
         slow = _reference_signature(aligned)
-        moved_points = np.abs(fast - slow).sum() * len(aligned) / 2
-        assert moved_points <= 5  # of 64 x ~120k point-plane votes
-        d_fast = descriptor_from_signature(fast)
-        d_slow = descriptor_from_signature(slow)
-        assert np.linalg.norm(d_fast - d_slow) < 1e-5
+        # both float32 routes: atan2 (the previous one) and fast (comparisons, the default)
+        for fast in (signature_matrix(aligned, M2DPParams()),
+                     signature_matrix_fast(scans[key], M2DPParams())):
+            moved_points = np.abs(fast - slow).sum() * len(aligned) / 2
+            assert moved_points <= 5  # of 64 x ~120k point-plane votes
+            d_fast = descriptor_from_signature(fast)
+            d_slow = descriptor_from_signature(slow)
+            assert np.linalg.norm(d_fast - d_slow) < 1e-5
