@@ -60,19 +60,31 @@ def build_pr_compare(runs: Sequence[Run], protocol: int) -> Figure | None:
 
 
 def build_affinity(run: Run) -> Figure | None:
-    """Ground truth beside each protocol 2 affinity matrix."""
-    names = style.in_method_order(run.descriptors(2))
-    matrices = {}
-    for name in names:
-        matrix = run.affinity(name, required=False)
-        if matrix is None:
-            warn(run.path / "protocol2" / name, "no affinity.npy; left out of affinity figure")
+    """Ground truth beside each protocol 2 affinity matrix.
+
+    Above 8192 frames a run keeps only ``affinity_decimated.npy`` (every k-th
+    frame): the figure is then drawn on those frames, ground truth included,
+    and says "decimated by k".
+    """
+    matrices, steps = {}, {}
+    for name in style.in_method_order(run.descriptors(2)):
+        full = run.affinity(name, required=False)
+        decimated = None if full is not None else run.affinity_decimated(name, required=False)
+        if full is not None:
+            matrices[name], steps[name] = full, 1
+        elif decimated is not None:
+            matrices[name], steps[name] = decimated
         else:
-            matrices[name] = matrix
+            warn(run.path / "protocol2" / name,
+                 "no affinity.npy or affinity_decimated.npy; left out of affinity figure")
     if not matrices:
         return None
-    return affinity_figure(run.ground_truth().positive_matrix(), matrices,
-                           radius=run.gt_settings().radius)
+    step = max(steps.values())  # one run has one frame count, so one decimation step
+    shown = {name: m if steps[name] == step else m[::step, ::step]
+             for name, m in matrices.items()}
+    return affinity_figure(run.ground_truth(step).positive_matrix(), shown,
+                           radius=run.gt_settings().radius, step=step,
+                           n_frames=run.n_frames)
 
 
 def build_trajectory(run: Run) -> Figure:

@@ -12,6 +12,8 @@ timing, affinity) can be asked for with ``required=False``, which returns
 from __future__ import annotations
 
 import json
+import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -124,6 +126,36 @@ class Run:
                              f"affinity has shape {matrix.shape}, expected {expected}")
         return matrix
 
+    def affinity_decimated(self, descriptor: str,
+                           required: bool = True) -> tuple[np.ndarray, int] | None:
+        """``protocol2/<descriptor>/affinity_decimated.npy`` and its frame step ``k``.
+
+        Above 8192 frames protocol 2 keeps, for figures, only the distances
+        between frames ``0, k, 2k, …`` (float16, memory-mapped here); the
+        metrics still count every pair. ``k`` is read from the row's
+        ``affinity_stored`` note (``"… every kth frame (M x M) …"``) and checked
+        against the matrix side, ``ceil(N / k)``.
+        """
+        relative = f"protocol2/{descriptor}/affinity_decimated.npy"
+        if not required and not self.has(relative):
+            return None
+        matrix = self._npy(relative, mmap=True)
+        note = str(self.row(2, descriptor).get("affinity_stored") or "")
+        found = re.search(r"every (\d+)", note)
+        if found is None or int(found.group(1)) < 1:
+            raise LirisError(self.path / "metrics.json",
+                             f"{descriptor}: affinity_stored does not give the frame step of "
+                             f"{relative} (got {note!r})")
+        step = int(found.group(1))
+        side = math.ceil(self.n_frames / step) if self.has("positions.npy") else None
+        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or \
+                (side is not None and matrix.shape[0] != side):
+            expected = f"({side}, {side})" if side is not None else "a square matrix"
+            raise LirisError(self.path / relative,
+                             f"decimated affinity has shape {matrix.shape}, expected {expected} "
+                             f"(every {step}th frame)")
+        return matrix, step
+
     # ---- trajectory and ground truth --------------------------------------------------
     def positions(self) -> np.ndarray:
         """``positions.npy``: the ``(N, 3)`` float64 translations used for ground truth."""
@@ -159,12 +191,17 @@ class Run:
             raise LirisError(self.path / "config.yaml",
                              f"bad ground-truth setting: {err}") from None
 
-    def ground_truth(self):
-        """Ground truth recomputed from ``positions.npy`` exactly as the run defined it."""
+    def ground_truth(self, step: int = 1):
+        """Ground truth recomputed from ``positions.npy`` exactly as the run defined it.
+
+        ``step`` > 1 keeps frames ``0, step, 2·step, …`` only (the frames of a
+        decimated affinity): their positive pairs are those of the full run,
+        but ``revisit`` then counts the exclusion window in kept frames.
+        """
         from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
 
         s = self.gt_settings()
-        return compute_ground_truth(self.positions(), s.radius, s.exclude, s.distance,
+        return compute_ground_truth(self.positions()[::step], s.radius, s.exclude, s.distance,
                                     s.pose_frame)
 
     # ---- config.yaml -------------------------------------------------------------------
