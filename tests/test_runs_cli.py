@@ -152,3 +152,11 @@ def test_a_file_is_not_a_run_folder(tmp_path, capsys, command):
     target.write_text('{"results": []}')
     code, _, err = run_cli([command, target], capsys)
     assert_one_line_error(code, err, f"{target}: not a run folder")
+
+
+def test_the_parent_of_a_multi_sequence_run_points_to_its_run_folders(tmp_path, capsys):
+    parent = tmp_path / "multi"
+    (parent / "01-seq").mkdir(parents=True)
+    (parent / "summary.csv").write_text("sequence,protocol\n")
+    code, _, err = run_cli(["show", parent], capsys)
+    assert_one_line_error(code, err, f"{parent}: a multi-sequence run", "NN-<sequence>/")

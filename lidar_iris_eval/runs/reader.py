@@ -270,6 +270,9 @@ def load_run(path: str | Path) -> Run:
                                  "liris eval)")
     metrics_path = folder / "metrics.json"
     if not metrics_path.is_file():
+        if (folder / "summary.csv").is_file():  # liris eval SEQ1 SEQ2 / --plan
+            raise LirisError(folder, "a multi-sequence run (summary.csv, no metrics.json): "
+                                     "give one of its NN-<sequence>/ run folders")
         raise LirisError(folder, "not a run folder: no metrics.json (written by liris eval)")
     metrics = _load_json(metrics_path)
     if not isinstance(metrics, dict) or not isinstance(metrics.get("results"), list):
