@@ -213,7 +213,7 @@ def extract(
             chunks[(a, b)] = arrays
             if cache is not None:
                 cache.store_chunk(key, a, b, arrays)
-    arrays = _assemble(chunks, ranges, descriptor.name)
+    arrays = _assemble(chunks, ranges, descriptor.name)  # empties ``chunks``
     if cache is not None:
         cache.store(key, arrays)
     _warn_if_degenerate(arrays, descriptor, seq)
@@ -247,6 +247,11 @@ def _split(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
 
 
 def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
+    """The chunks' arrays joined in ``ranges`` order; ``chunks`` is emptied on the way.
+
+    Each chunk is copied into the joined array and then let go, so the
+    descriptors are held about once, not twice (chunks + their concatenation).
+    """
     parts = [chunks[r] for r in ranges]
     if not parts:
         raise LirisError(name, "the sequence has no scans")
@@ -256,6 +261,7 @@ def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
             features = RaggedFeatures.concatenate([RaggedFeatures.from_arrays(p) for p in parts])
         except ValueError as err:
             raise RuntimeError(f"{name}.compute: inconsistent feature sets: {err}") from None
+        chunks.clear()
         return {**features.to_arrays(), **times}
     first = parts[0]["descriptors"]
     for part in parts[1:]:
@@ -265,7 +271,16 @@ def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
                 f"{name}.compute returned inconsistent outputs: {first.dtype}{first.shape[1:]} "
                 f"vs {d.dtype}{d.shape[1:]}"
             )
-    return {"descriptors": np.concatenate([p["descriptors"] for p in parts]), **times}
+    total = sum(len(p["descriptors"]) for p in parts)
+    joined = np.zeros((total, *first.shape[1:]), dtype=first.dtype)  # calloc: paged in on write
+    del first
+    chunks.clear()
+    stop = 0
+    for k in range(len(parts)):
+        part, parts[k] = parts[k]["descriptors"], None  # the last reference: freed once copied
+        joined[stop : stop + len(part)] = part
+        stop += len(part)
+    return {"descriptors": joined, **times}
 
 
 def _compute_chunks(seq, descriptor, todo, workers, bar) -> Iterable:
