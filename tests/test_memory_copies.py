@@ -17,7 +17,7 @@ import pytest
 
 from lidar_iris_eval.cache import arrays_checksum
 from lidar_iris_eval.evaluation import sanity
-from lidar_iris_eval.extract import _assemble, chunk_ranges
+from lidar_iris_eval.extract import _Joiner, chunk_ranges
 
 
 def constant_by_loop(stack: np.ndarray) -> np.ndarray:
@@ -94,14 +94,50 @@ def test_checksum_equals_sha256_of_the_bytes_without_copying_them():
     assert arrays_checksum(arrays) == reference.hexdigest()
 
 
-def test_assemble_joins_chunks_in_order_and_lets_them_go():
+def test_chunks_are_joined_in_place_in_any_order():
     rng = np.random.default_rng(4)
     stack = iris_like_stack(23, rng)
     ranges = chunk_ranges(23, 5)
-    chunks = {(a, b): {"descriptors": stack[a:b].copy(), "extract_s": np.arange(a, b) * 1.0,
-                       "read_s": np.zeros(b - a)} for a, b in reversed(ranges)}  # pool order
-    joined = _assemble(chunks, ranges, "toy")
-    assert chunks == {}
-    assert joined["descriptors"].dtype == stack.dtype
-    assert joined["descriptors"].tobytes() == stack.tobytes()
-    np.testing.assert_array_equal(joined["extract_s"], np.arange(23.0))
+    joined = _Joiner(ranges, "toy")
+    for a, b in reversed(ranges):  # a pool finishes chunks in any order
+        part = stack[a:b].copy()
+        joined.add(a, b, {"descriptors": part, "extract_s": np.arange(a, b) * 1.0,
+                          "read_s": np.zeros(b - a)})
+        assert not np.shares_memory(joined.dense, part)  # copied: the chunk can go
+    out = joined.arrays()
+    assert out["descriptors"].dtype == stack.dtype
+    assert out["descriptors"].tobytes() == stack.tobytes()
+    np.testing.assert_array_equal(out["extract_s"], np.arange(23.0))
+    with pytest.raises(RuntimeError, match="inconsistent outputs"):
+        joined.add(0, 5, {"descriptors": np.zeros((5, 3)), "extract_s": np.zeros(5),
+                          "read_s": np.zeros(5)})
+
+
+def test_lidar_iris_database_in_slices_gives_the_same_bits(monkeypatch):
+    """compare_blocks copies the database to kernel inputs DATABASE_CHUNK descriptors at a
+    time; every pair is computed on its own, so any slicing gives identical results."""
+    from lidar_iris_eval.descriptors import get_descriptor
+    from lidar_iris_eval.descriptors.lidar_iris import descriptor as iris
+
+    rng = np.random.default_rng(5)
+    desc = get_descriptor("lidar-iris")
+    place = rng.uniform(-30, 30, (3000, 3)) * [1, 1, 0.1]
+    scans = []
+    for k in range(11):  # one place turned and thinned, and other places
+        turn = 0.4 * k
+        rot = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0],
+                        [0, 0, 1]])
+        pts = place @ rot.T if k % 3 else rng.uniform(-30, 30, (3000, 3)) * [1, 1, 0.1]
+        pts = pts[rng.random(len(pts)) < 0.9]
+        scans.append(np.c_[pts, np.zeros(len(pts))].astype(np.float32))
+    stack = np.stack([desc.compute(p) for p in scans])
+    whole_d, whole_s = iris.compare_blocks(stack[:4], stack, desc.params)
+    for chunk in (1, 3, 10):
+        monkeypatch.setattr(iris, "DATABASE_CHUNK", chunk)
+        d, s = iris.compare_blocks(stack[:4], stack, desc.params)
+        np.testing.assert_array_equal(d, whole_d)
+        np.testing.assert_array_equal(s, whole_s)
+    assert np.isfinite(whole_d).all() and (whole_d[np.arange(4), np.arange(4)] == 0).all()
+    assert whole_d[1, 2] < whole_d[1, 3]  # same place (turned) closer than another place
+    empty_d, _ = iris.compare_blocks(stack[:2], stack[:0], desc.params)
+    assert empty_d.shape == (2, 0)
