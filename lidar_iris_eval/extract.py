@@ -203,17 +203,21 @@ def extract(
         cache.check_writable()  # fail now, not after the extraction
     chunks = cache.load_chunks(key) if cache is not None else {}
     ranges = chunk_ranges(len(seq), chunk_size)
-    chunks = {r: arrays for r, arrays in chunks.items() if r in ranges}
-    todo = [r for r in ranges if r not in chunks]
-    done = sum(b - a for a, b in chunks)
-    bar = tqdm(total=len(seq), initial=done, desc=descriptor.name, unit="scan",
-               file=sys.stderr, disable=not progress, leave=False)
+    joined = _Joiner(ranges, descriptor.name)
+    for (a, b), arrays in chunks.items():  # resumed from a killed run
+        if (a, b) in ranges:
+            joined.add(a, b, arrays)
+    del chunks
+    todo = [r for r in ranges if r not in joined]
+    bar = tqdm(total=len(seq), initial=len(seq) - sum(b - a for a, b in todo),
+               desc=descriptor.name, unit="scan", file=sys.stderr, disable=not progress,
+               leave=False)
     with bar:
         for (a, b), arrays in _compute_chunks(seq, descriptor, todo, workers, bar):
-            chunks[(a, b)] = arrays
             if cache is not None:
                 cache.store_chunk(key, a, b, arrays)
-    arrays = _assemble(chunks, ranges, descriptor.name)
+            joined.add(a, b, arrays)
+    arrays = joined.arrays()
     if cache is not None:
         cache.store(key, arrays)
     _warn_if_degenerate(arrays, descriptor, seq)
@@ -246,26 +250,59 @@ def _split(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
     return out
 
 
-def _assemble(chunks, ranges, name: str) -> dict[str, np.ndarray]:
-    parts = [chunks[r] for r in ranges]
-    if not parts:
-        raise LirisError(name, "the sequence has no scans")
-    times = {k: np.concatenate([p[k] for p in parts]) for k in ("extract_s", "read_s")}
-    if RaggedFeatures.in_arrays(parts[0]):
+class _Joiner:
+    """The chunks of one extraction, joined as they arrive (in any order).
+
+    Dense descriptors are copied at once into one preallocated ``(N, ...)``
+    array, so each chunk is let go as soon as it is stored: the descriptors
+    are held once. (Keeping every chunk until the end and concatenating them
+    held them twice: 0.4 GiB more at 4541 LiDAR Iris frames.) Feature sets
+    (ragged) are kept per chunk and joined at the end.
+    """
+
+    def __init__(self, ranges: list[tuple[int, int]], name: str):
+        self.ranges, self.name = list(ranges), name
+        self.times: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self.ragged: dict[tuple[int, int], dict[str, np.ndarray]] = {}
+        self.dense: np.ndarray | None = None
+
+    def __contains__(self, chunk: tuple[int, int]) -> bool:
+        return chunk in self.times
+
+    def add(self, a: int, b: int, arrays: dict[str, np.ndarray]) -> None:
+        """Store the arrays of scans ``[a, b)``."""
+        ragged = RaggedFeatures.in_arrays(arrays)
+        if (ragged and self.dense is not None) or (not ragged and self.ragged):
+            raise RuntimeError(f"{self.name}.compute returned a feature set for some scans "
+                               "and an array for others")
+        if ragged:
+            self.ragged[(a, b)] = arrays
+        else:
+            d = arrays["descriptors"]
+            if self.dense is None:  # calloc: pages become memory as chunks are written
+                self.dense = np.zeros((self.ranges[-1][1], *d.shape[1:]), dtype=d.dtype)
+            elif d.dtype != self.dense.dtype or d.shape[1:] != self.dense.shape[1:]:
+                raise RuntimeError(
+                    f"{self.name}.compute returned inconsistent outputs: "
+                    f"{self.dense.dtype}{self.dense.shape[1:]} vs {d.dtype}{d.shape[1:]}"
+                )
+            self.dense[a:b] = d
+        self.times[(a, b)] = (arrays["extract_s"], arrays["read_s"])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Descriptors (or feature-set arrays) and per-scan times of every scan."""
+        if not self.ranges:
+            raise LirisError(self.name, "the sequence has no scans")
+        times = {key: np.concatenate([self.times[r][k] for r in self.ranges])
+                 for k, key in enumerate(("extract_s", "read_s"))}
+        if self.dense is not None:
+            return {"descriptors": self.dense, **times}
         try:
-            features = RaggedFeatures.concatenate([RaggedFeatures.from_arrays(p) for p in parts])
+            features = RaggedFeatures.concatenate(
+                [RaggedFeatures.from_arrays(self.ragged[r]) for r in self.ranges])
         except ValueError as err:
-            raise RuntimeError(f"{name}.compute: inconsistent feature sets: {err}") from None
+            raise RuntimeError(f"{self.name}.compute: inconsistent feature sets: {err}") from None
         return {**features.to_arrays(), **times}
-    first = parts[0]["descriptors"]
-    for part in parts[1:]:
-        d = part["descriptors"]
-        if d.dtype != first.dtype or d.shape[1:] != first.shape[1:]:
-            raise RuntimeError(
-                f"{name}.compute returned inconsistent outputs: {first.dtype}{first.shape[1:]} "
-                f"vs {d.dtype}{d.shape[1:]}"
-            )
-    return {"descriptors": np.concatenate([p["descriptors"] for p in parts]), **times}
 
 
 def _compute_chunks(seq, descriptor, todo, workers, bar) -> Iterable:

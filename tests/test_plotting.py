@@ -308,6 +308,106 @@ def test_affinity_shows_ground_truth_and_methods_on_one_scale(run_dir):
     assert any(t.startswith("M2DP\nd ∈ [") for t in titles)  # the range normalised
 
 
+def decimate_run(run_dir: Path, root: Path, step: int, note_step: int | None = None) -> Path:
+    """A copy of ``run_dir`` as a run above 8192 frames writes it: no affinity.npy, only
+    ``affinity_decimated.npy`` (frames 0, step, 2·step, … in float16, NaN diagonal)."""
+    import shutil
+
+    out = root / f"decimated-{step}-{note_step}"
+    shutil.copytree(run_dir, out)
+    metrics = json.loads((out / "metrics.json").read_text())
+    for row in metrics["results"]:
+        if row["protocol"] != 2:
+            continue
+        folder = out / "protocol2" / row["descriptor"]
+        full = np.load(folder / "affinity.npy")
+        (folder / "affinity.npy").unlink()
+        np.save(folder / "affinity_decimated.npy", full[::step, ::step].astype(np.float16))
+        side = -(-N_FRAMES // step)
+        row["affinity_stored"] = (f"decimated float16 for figures: every {note_step or step}th "
+                                  f"frame ({side} x {side}); metrics use every pair")
+    (out / "metrics.json").write_text(json.dumps(metrics))
+    return out
+
+
+def test_affinity_above_8192_frames_is_drawn_from_the_decimated_matrix(run_dir, tmp_path):
+    step = 3
+    run = load_run(decimate_run(run_dir, tmp_path, step))
+    fig = build_affinity(run)
+    assert fig is not None
+    positions = np.load(run_dir / "positions.npy")[::step]  # frames 0, 3, ..., 87
+    gap = np.linalg.norm(positions[:, None] - positions[None], axis=2)
+    np.testing.assert_array_equal(image(fig, "affinity:ground-truth").get_array(),
+                                  (gap < RADIUS).astype(float))
+    for name in METHODS:
+        d = np.load(run_dir / "protocol2" / name / "affinity.npy")[::step, ::step]
+        d = d.astype(np.float16).astype(np.float64)  # what the decimated file holds
+        off = d[~np.isnan(d)]
+        expected = 1 - (d - off.min()) / (off.max() - off.min())
+        np.fill_diagonal(expected, 1.0)
+        drawn = image(fig, f"affinity:{name}")
+        assert drawn.get_array().shape == (30, 30)
+        np.testing.assert_allclose(drawn.get_array(), expected, atol=1e-12)
+        # axes in frames of the run: cell i is frame 3i
+        assert drawn.get_extent() == [-1.5, 88.5, 88.5, -1.5]
+    assert fig._suptitle.get_text().startswith("decimated by 3: frames 0, 3, 6, … (30 of 90")
+    with pytest.warns(LirisWarning, match="sequence not found"):  # no scans: no iris figures
+        written = plot_run(run.path, tmp_path / "figs", "png")
+    assert (tmp_path / "figs" / "affinity.png") in written
+
+
+def test_decimated_affinity_whose_step_disagrees_is_a_one_line_error(run_dir, tmp_path, capsys):
+    bad = decimate_run(run_dir, tmp_path, 3, note_step=4)  # 30 x 30 stored, note says 4
+    code, _, err = run_cli(["plot", str(bad), "--out", str(tmp_path / "figs")], capsys)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert "affinity_decimated.npy: decimated affinity has shape (30, 30), expected (23, 23)" \
+        in lines[0]
+
+
+def test_liris_eval_decimated_run_gets_its_affinity_figure(tmp_path, capsys, monkeypatch):
+    """End to end: force decimation with small limits, then plot what eval wrote."""
+    from test_protocols import two_pass_sequence
+
+    from lidar_iris_eval.descriptors import _REGISTRY
+    from lidar_iris_eval.evaluation import streaming_pr
+
+    monkeypatch.setitem(_REGISTRY, "toy", "test_protocols:ToyHist")
+    monkeypatch.setattr(streaming_pr, "AUTO_FLOAT32_MAX_FRAMES", 4)
+    monkeypatch.setattr(streaming_pr, "AUTO_FLOAT16_MAX_FRAMES", 8)
+    monkeypatch.setattr(streaming_pr, "DECIMATED_SIDE", 10)  # 24 frames: step 3, 8 x 8
+    seq = two_pass_sequence(tmp_path / "seq", n_per_pass=12)
+    out = tmp_path / "run"
+    code, _, err = run_cli(["eval", seq, "--protocol", "2", "-d", "toy", "--out", out,
+                            "--cache-dir", tmp_path / "cache", "-q"], capsys)
+    assert code == 0, err
+    folder = out / "protocol2" / "toy"
+    assert not (folder / "affinity.npy").exists()
+    stored = np.load(folder / "affinity_decimated.npy")
+    assert stored.shape == (8, 8)
+    fig = build_affinity(load_run(out))
+    assert "decimated by 3" in fig._suptitle.get_text()
+    # the passes are 12 frames apart: frames 0, 3, ..., 21 pair up as (k, k + 12) = cells
+    # (i, i + 4), the only positives, at 0 m
+    expected_gt = np.eye(8)
+    expected_gt[np.arange(4), np.arange(4, 8)] = expected_gt[np.arange(4, 8), np.arange(4)] = 1
+    np.testing.assert_array_equal(image(fig, "affinity:ground-truth").get_array(), expected_gt)
+    d = stored.astype(np.float64)
+    assert np.all(d[np.arange(4), np.arange(4, 8)] == 0)  # byte-identical scans
+    drawn = image(fig, "affinity:toy").get_array()
+    np.testing.assert_allclose(drawn[np.arange(4), np.arange(4, 8)], 1.0)
+    off = d[~np.isnan(d)]
+    expected = 1 - (d - off.min()) / (off.max() - off.min())
+    np.fill_diagonal(expected, 1.0)
+    np.testing.assert_allclose(drawn, expected, atol=1e-12)
+    # the HTML report shows it too, captioned the same way
+    from lidar_iris_eval.report_html.page import affinity_images
+
+    section = affinity_images(load_run(out))
+    assert section.count("<img") == 1
+    assert "<figcaption>toy/default (decimated by 3)</figcaption>" in section
+
+
 # ---- trajectory -----------------------------------------------------------------------------
 def test_outcomes_by_hand():
     matches = pd.DataFrame({

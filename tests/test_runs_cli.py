@@ -115,3 +115,48 @@ def test_show_and_compare_refuse_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert_one_line_error(code, err, "run folder not found")
     code, _, err = run_cli(["compare", tmp_path], capsys)
     assert_one_line_error(code, err, "at least two")
+
+
+#: a broken part of a run folder -> (file written, its content, what the message says)
+BROKEN = {
+    "metrics-not-json": ("metrics.json", "{results: [", "not valid JSON"),
+    "metrics-no-results": ("metrics.json", '{"version": "x"}', "no 'results' list"),
+    "row-without-descriptor": ("metrics.json", '{"results": [{"protocol": 1}]}',
+                               "every result needs 'protocol' and 'descriptor'"),
+    "config-not-mapping": ("config.yaml", "- a\n- b\n", "expected a mapping"),
+    "config-not-yaml": ("config.yaml", "a: [1,\n  b: {\n", "not valid YAML"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BROKEN))
+@pytest.mark.parametrize("command", ["show", "compare", "report", "plot"])
+def test_every_reader_of_runs_words_a_broken_run_alike(tmp_path, capsys, case, command):
+    """show, compare, report and plot read run folders through one reader (runs/reader),
+    so the same broken file gives the same single line naming it."""
+    name, content, problem = BROKEN[case]
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "metrics.json").write_text('{"results": []}')
+    (run_dir / name).write_text(content)
+    args = {"show": ["show", run_dir], "compare": ["compare", run_dir, run_dir],
+            "report": ["report", run_dir, "--out", tmp_path / "page"],
+            "plot": ["plot", run_dir, "--out", tmp_path / "figs"]}[command]
+    code, _, err = run_cli(args, capsys)
+    assert_one_line_error(code, err, f"{run_dir / name}: {problem}")
+    assert not (tmp_path / "figs").exists() and not (tmp_path / "page").exists()
+
+
+@pytest.mark.parametrize("command", ["show", "plot"])
+def test_a_file_is_not_a_run_folder(tmp_path, capsys, command):
+    target = tmp_path / "metrics.json"
+    target.write_text('{"results": []}')
+    code, _, err = run_cli([command, target], capsys)
+    assert_one_line_error(code, err, f"{target}: not a run folder")
+
+
+def test_the_parent_of_a_multi_sequence_run_points_to_its_run_folders(tmp_path, capsys):
+    parent = tmp_path / "multi"
+    (parent / "01-seq").mkdir(parents=True)
+    (parent / "summary.csv").write_text("sequence,protocol\n")
+    code, _, err = run_cli(["show", parent], capsys)
+    assert_one_line_error(code, err, f"{parent}: a multi-sequence run", "NN-<sequence>/")

@@ -5,6 +5,8 @@
 timing, LiDAR Iris image/features/alignment); ``plot_compare(run_dirs, …)``
 overlays the PR curves of several runs. Each figure also has a ``build_*``
 function returning the :class:`~matplotlib.figure.Figure` for inspection.
+Runs are read by :mod:`lidar_iris_eval.runs.reader` (re-exported here as
+``load_run``), the reader ``liris show``, ``compare`` and ``report`` use too.
 """
 
 from lidar_iris_eval.plotting.figures import (
@@ -19,11 +21,11 @@ from lidar_iris_eval.plotting.figures import (
     plot_compare,
     plot_run,
 )
-from lidar_iris_eval.plotting.results import RunResults, load_run
+from lidar_iris_eval.runs.reader import Run, load_run
 
 __all__ = [
     "FILE_STEMS",
-    "RunResults",
+    "Run",
     "build_affinity",
     "build_iris",
     "build_pr",

@@ -98,12 +98,15 @@ def affinity_figure_size(n_methods: int) -> tuple[float, float]:
 
 
 def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray],
-                    radius: float | None = None) -> Figure:
+                    radius: float | None = None, step: int = 1,
+                    n_frames: int | None = None) -> Figure:
     """Ground truth (bool N×N) beside each method's distance matrix (N×N).
 
     The image of panel k has gid ``"affinity:ground-truth"`` or
     ``"affinity:<name>"``; its array is the (block-reduced) similarity drawn.
-    ``radius`` (metres) labels what a positive pair is.
+    ``radius`` (metres) labels what a positive pair is. ``step`` > 1 says the
+    matrices hold every ``step``-th frame of ``n_frames`` (a decimated
+    affinity): the axes keep frame numbers and the title says so.
     """
     n = gt_positive.shape[0]
     block = display_block(n)
@@ -120,7 +123,8 @@ def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray]
     with style.context():
         fig = style.new_figure(*affinity_figure_size(len(panels) - 1))
         axes = fig.subplots(rows, cols, squeeze=False, sharex=True, sharey=True)
-        extent = (-0.5, n - 0.5, n - 0.5, -0.5)  # frame indices on both axes
+        # frame indices on both axes (cell i is frame i·step)
+        extent = (-0.5 * step, (n - 0.5) * step, (n - 0.5) * step, -0.5 * step)
         gt_image = sim_image = None
         for k, ax in enumerate(axes.flat):
             if k >= len(panels):
@@ -161,9 +165,15 @@ def affinity_figure(gt_positive: np.ndarray, distances: Mapping[str, np.ndarray]
             bar.set_label("similarity = 1 − (d − d_min) / (d_max − d_min), normalised per "
                           "method over its off-diagonal pairs", fontsize=6, labelpad=1)
             bar.ax.tick_params(labelsize=6, length=2)
+        notes = []
+        if step > 1:
+            of = f" of {n_frames}" if n_frames is not None else ""
+            notes.append(f"decimated by {step}: frames 0, {step}, {2 * step}, … "
+                         f"({n}{of} frames)")
         if block > 1:
-            fig.suptitle(f"each pixel: the most similar pair of a {block}×{block} block",
-                         fontsize=6, color="0.3")
+            notes.append(f"each pixel: the most similar pair of a {block}×{block} block")
+        if notes:
+            fig.suptitle("; ".join(notes), fontsize=6, color="0.3")
     return fig
 
 

@@ -1,7 +1,7 @@
 """From a run directory to figures: one builder per figure, and the drivers.
 
 Each ``build_*`` function reads what it needs from a
-:class:`~lidar_iris_eval.plotting.results.RunResults` and returns a
+:class:`~lidar_iris_eval.runs.reader.Run` (the one reader of run folders) and returns a
 :class:`~matplotlib.figure.Figure` (or ``None`` with a warning when an
 optional input is missing), so callers and tests can inspect the plotted
 data before anything is written. :func:`plot_run` and :func:`plot_compare`
@@ -21,9 +21,9 @@ from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.plotting import style
 from lidar_iris_eval.plotting.affinity import affinity_figure
 from lidar_iris_eval.plotting.pr import pr_figure, protocol_title, run_curves
-from lidar_iris_eval.plotting.results import RunResults, load_run
 from lidar_iris_eval.plotting.timing import timing_figure
 from lidar_iris_eval.plotting.trajectory import Outcomes, outcomes, trajectory_figure
+from lidar_iris_eval.runs.reader import Run, load_run
 
 #: figure name -> file stem; stable, because the README links to them
 FILE_STEMS = {
@@ -39,15 +39,15 @@ IRIS = "lidar-iris"
 
 
 # ---- builders -------------------------------------------------------------------------
-def build_pr(run: RunResults, protocol: int) -> Figure | None:
+def build_pr(run: Run, protocol: int) -> Figure | None:
     """All methods' PR curves for one protocol, or None when the run lacks it."""
     if protocol not in run.protocols():
         return None
-    exclude = run.gt_settings.exclude if protocol == 1 else None
+    exclude = run.gt_settings().exclude if protocol == 1 else None
     return pr_figure(run_curves(run, protocol), protocol_title(protocol, exclude))
 
 
-def build_pr_compare(runs: Sequence[RunResults], protocol: int) -> Figure | None:
+def build_pr_compare(runs: Sequence[Run], protocol: int) -> Figure | None:
     """PR curves of several runs overlaid; colour = method, line style = run."""
     curves = []
     for k, run in enumerate(runs):
@@ -59,60 +59,74 @@ def build_pr_compare(runs: Sequence[RunResults], protocol: int) -> Figure | None
     return pr_figure(curves, protocol_title(protocol), legend_outside=True)
 
 
-def build_affinity(run: RunResults) -> Figure | None:
-    """Ground truth beside each protocol 2 affinity matrix."""
-    names = run.descriptors(2)
-    matrices = {}
-    for name in names:
-        matrix = run.affinity(name)
-        if matrix is None:
-            warn(run.path / "protocol2" / name, "no affinity.npy; left out of affinity figure")
+def build_affinity(run: Run) -> Figure | None:
+    """Ground truth beside each protocol 2 affinity matrix.
+
+    Above 8192 frames a run keeps only ``affinity_decimated.npy`` (every k-th
+    frame): the figure is then drawn on those frames, ground truth included,
+    and says "decimated by k".
+    """
+    matrices, steps = {}, {}
+    for name in style.in_method_order(run.descriptors(2)):
+        full = run.affinity(name, required=False)
+        decimated = None if full is not None else run.affinity_decimated(name, required=False)
+        if full is not None:
+            matrices[name], steps[name] = full, 1
+        elif decimated is not None:
+            matrices[name], steps[name] = decimated
         else:
-            matrices[name] = matrix
+            warn(run.path / "protocol2" / name,
+                 "no affinity.npy or affinity_decimated.npy; left out of affinity figure")
     if not matrices:
         return None
-    return affinity_figure(run.ground_truth().positive_matrix(), matrices,
-                           radius=run.gt_settings.radius)
+    step = max(steps.values())  # one run has one frame count, so one decimation step
+    shown = {name: m if steps[name] == step else m[::step, ::step]
+             for name, m in matrices.items()}
+    return affinity_figure(run.ground_truth(step).positive_matrix(), shown,
+                           radius=run.gt_settings().radius, step=step,
+                           n_frames=run.n_frames)
 
 
-def build_trajectory(run: RunResults) -> Figure:
+def build_trajectory(run: Run) -> Figure:
     """The path with revisits, and protocol 1 detections at each method's F1max τ."""
     from lidar_iris_eval.evaluation.ground_truth import ground_plane_axes
 
-    settings = run.gt_settings
+    settings = run.gt_settings()
     results: dict[str, Outcomes] = {}
-    for name in run.descriptors(1):
-        matches = run.matches(name)
-        tau = _number(run.metric(1, name).get("f1_threshold"))
+    for name in style.in_method_order(run.descriptors(1)):
+        matches = run.matches(name, required=False)
+        tau = _number(run.row(1, name).get("f1_threshold"))
         if matches is None or math.isnan(tau):
             warn(run.path / "protocol1" / name,
                  "no matches.csv or f1_threshold; left out of trajectory figure")
             continue
         results[name] = outcomes(matches, tau)
-    return trajectory_figure(run.positions, ground_plane_axes(settings.pose_frame),
+    return trajectory_figure(run.positions(), ground_plane_axes(settings.pose_frame),
                              run.ground_truth().revisit, results, frame=settings.pose_frame)
 
 
-def build_timing(run: RunResults) -> Figure | None:
+def build_timing(run: Run) -> Figure | None:
     """Per-scan extraction times (box) and matching time per method (bar)."""
     extract = {}
-    for name in run.descriptors():
-        table = run.timing(name)
+    for name in style.in_method_order(run.descriptors()):
+        table = run.timing(name, required=False)
         if table is not None:
             extract[name] = table["extract_s"].to_numpy(dtype=np.float64) * 1e3
     match, label = {}, "matching [ms / query]"
     if run.descriptors(2):
-        match = {n: _number(run.metric(2, n).get("match_us_per_pair")) for n in run.descriptors(2)}
+        match = {n: _number(run.row(2, n).get("match_us_per_pair"))
+                 for n in style.in_method_order(run.descriptors(2))}
         label = "matching [µs / pair]"
     if not any(np.isfinite(v) for v in match.values()):
-        match = {n: _number(run.metric(1, n).get("match_ms_per_query")) for n in run.descriptors(1)}
+        match = {n: _number(run.row(1, n).get("match_ms_per_query"))
+                 for n in style.in_method_order(run.descriptors(1))}
         label = "matching [ms / query]"
     if not extract and not any(np.isfinite(v) for v in match.values()):
         return None
     return timing_figure(extract, match, label, _conditions(run))
 
 
-def _conditions(run: RunResults) -> str:
+def _conditions(run: Run) -> str:
     """``"2 cores, load average 11.7 (1 min) at the end of the run"``, when recorded."""
     host = run.metrics.get("host") or {}
     load = host.get("load_average_1_5_15min")
@@ -123,7 +137,7 @@ def _conditions(run: RunResults) -> str:
     return f"{where}load average {load[0]:.1f} at the end of the run (matching is wall time)"
 
 
-def build_iris(run: RunResults, frame: int | None = None) -> tuple[Figure | None, Figure | None]:
+def build_iris(run: Run, frame: int | None = None) -> tuple[Figure | None, Figure | None]:
     """LiDAR Iris image + binary maps of one frame, and the alignment of a revisit pair.
 
     Needs the scans (``sequence`` in config.yaml) and the LiDAR Iris module;
@@ -185,6 +199,8 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
     """
     fmt = _check_format(fmt)
     run = load_run(run_dir)
+    if not run.rows:
+        raise LirisError(run.path / "metrics.json", "no results to plot")
     if frame is not None and not 0 <= frame < run.n_frames:
         raise LirisError(f"--frame {frame}",
                          f"frame index out of range (run has {run.n_frames} frames)")
@@ -261,7 +277,7 @@ def _number(value) -> float:
         return math.nan
 
 
-def _open_run_sequence(run: RunResults):
+def _open_run_sequence(run: Run):
     """The run's sequence, or None (with a warning) when it cannot be used."""
     path = run.sequence_path
     if path is None:
@@ -286,7 +302,7 @@ def _open_run_sequence(run: RunResults):
     return sequence
 
 
-def _recorded_reader_options(run: RunResults) -> dict:
+def _recorded_reader_options(run: Run) -> dict:
     """The reader options config.yaml records, typed again (old runs stored strings)."""
     recorded = (run.config.get("sequence") or {}).get("reader_options") or {}
     typed = {"lidar_frame": lambda v: v if isinstance(v, bool) else str(v) == "True",
@@ -305,7 +321,7 @@ def _scan_id(sequence, index: int) -> str:
     return str(index)
 
 
-def _iris_descriptor(run: RunResults):
+def _iris_descriptor(run: Run):
     """LiDAR Iris with the run's preset and parameters (so figures show what was scored),
     or the default preset when the run did not evaluate it."""
     from lidar_iris_eval.descriptors import get_descriptor
@@ -328,15 +344,15 @@ def _wavelengths(params) -> list[float] | None:
     return [float(base) * float(mult) ** s for s in range(int(nscale))]
 
 
-def _true_iris_matches(run: RunResults):
+def _true_iris_matches(run: Run):
     """LiDAR Iris protocol 1 rows whose best match is a true loop, or None."""
-    table = run.matches(IRIS) if IRIS in run.descriptors(1) else None
+    table = run.matches(IRIS, required=False) if IRIS in run.descriptors(1) else None
     if table is None or table.empty:
         return None
     return table[table["is_true"].astype(bool) & table["is_revisit"].astype(bool)]
 
 
-def _default_iris_frame(run: RunResults) -> int | None:
+def _default_iris_frame(run: Run) -> int | None:
     """A revisit that shows what the alignment does, like the paper's Fig. 5.
 
     The first revisit query often sits where a loop closes at a junction,
@@ -352,7 +368,7 @@ def _default_iris_frame(run: RunResults) -> int | None:
     return int(pool.loc[pool["distance"].idxmin(), "query"])
 
 
-def _true_iris_match(run: RunResults, frame: int) -> int | None:
+def _true_iris_match(run: Run, frame: int) -> int | None:
     """The frame LiDAR Iris matched to ``frame`` in protocol 1, when it is a true loop."""
     rows = _true_iris_matches(run)
     if rows is None:
@@ -361,15 +377,15 @@ def _true_iris_match(run: RunResults, frame: int) -> int | None:
     return None if hit.empty else int(hit["match"].iloc[0])
 
 
-def _revisit_partner(run: RunResults, frame: int, gt) -> int | None:
+def _revisit_partner(run: Run, frame: int, gt) -> int | None:
     """Nearest frame j ≤ frame − E within the radius, or None."""
     from lidar_iris_eval.evaluation.ground_truth import gt_coordinates
 
     last = frame - gt.exclude
     if last < 0:
         return None
-    s = run.gt_settings
-    coords = gt_coordinates(run.positions, s.pose_frame, s.distance)
+    s = run.gt_settings()
+    coords = gt_coordinates(run.positions(), s.pose_frame, s.distance)
     dist = np.linalg.norm(coords[: last + 1] - coords[frame], axis=1)
     best = int(np.argmin(dist))
     return best if dist[best] < s.radius else None

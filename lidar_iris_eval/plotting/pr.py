@@ -183,9 +183,9 @@ def pr_figure_size(n_curves: int, legend_outside: bool = True,
 def run_curves(run, protocol: int, prefix: str = "", linestyle: str = "-") -> list[PRCurve]:
     """The PR curves of every descriptor of ``run`` for ``protocol``."""
     curves = []
-    for name in run.descriptors(protocol):
+    for name in style.in_method_order(run.descriptors(protocol)):
         table = run.pr(protocol, name)
-        metric = run.metric(protocol, name)
+        metric = run.row(protocol, name)
         recall = table["recall"].to_numpy(dtype=np.float64)
         precision = table["precision"].to_numpy(dtype=np.float64)
         ap = _number(metric.get("ap"))

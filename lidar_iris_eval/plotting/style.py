@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import matplotlib
@@ -92,6 +92,11 @@ def method_label(name: str) -> str:
 def method_sort_key(name: str) -> tuple[int, str]:
     """Registry order first, unknown names after them alphabetically."""
     return (METHOD_ORDER.index(name) if name in METHOD_ORDER else len(METHOD_ORDER), name)
+
+
+def in_method_order(names: Iterable[str]) -> list[str]:
+    """``names`` in registry order, so every figure lists the methods alike."""
+    return sorted(names, key=method_sort_key)
 
 
 @contextlib.contextmanager

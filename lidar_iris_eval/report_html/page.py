@@ -227,10 +227,14 @@ def affinity_images(run: Run, max_px: int = MAX_AFFINITY_PX) -> str:
     figures = []
     for name in run.descriptors(2):
         row = run.row(2, name)
-        if not run.has(f"protocol2/{name}/affinity.npy"):
+        matrix, step = run.affinity(name, required=False), 1
+        if matrix is None:  # above 8192 frames only every k-th frame is kept
+            matrix, step = run.affinity_decimated(name, required=False) or (None, 1)
+        if matrix is None:
             continue
-        data = base64.b64encode(affinity_png(run.affinity(name), max_px)).decode("ascii")
-        caption = html.escape(f"{name}/{row.get('preset')}")
+        data = base64.b64encode(affinity_png(matrix, max_px)).decode("ascii")
+        decimated = f" (decimated by {step})" if step > 1 else ""
+        caption = html.escape(f"{name}/{row.get('preset')}{decimated}")
         figures.append(f"<figure><img alt='affinity {caption}' src='data:image/png;base64,"
                        f"{data}'><figcaption>{caption}</figcaption></figure>")
     return "<div id='affinity'>" + "".join(figures) + "</div>"

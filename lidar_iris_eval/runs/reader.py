@@ -1,13 +1,19 @@
 """One run folder as a Python object: config, metrics rows and per-descriptor files.
 
+The one reader of run folders (docs/results-format.md): ``liris show``,
+``compare``, ``report`` and ``plot`` all open runs through :func:`load_run`.
 Files are read lazily (an affinity matrix can be hundreds of megabytes), and a
 missing or malformed file is a :class:`~lidar_iris_eval.errors.LirisError`
-naming it, so the CLI reports it in one line.
+naming it, so the CLI reports it in one line. Files a run may lack (matches,
+timing, affinity) can be asked for with ``required=False``, which returns
+``None`` instead of raising, so a figure or page can skip that part.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,6 +23,21 @@ import pandas as pd
 import yaml
 
 from lidar_iris_eval.errors import LirisError
+
+#: columns a reader of each table relies on (more may be present)
+PR_COLUMNS = ("threshold", "precision", "recall")
+MATCH_COLUMNS = ("query", "match", "distance", "is_revisit", "is_true")
+TIMING_COLUMNS = ("scan", "extract_s")
+
+
+@dataclass(frozen=True)
+class GtSettings:
+    """The ground-truth conventions a run was evaluated with (liris defaults when absent)."""
+
+    radius: float = 4.0
+    exclude: int = 30
+    distance: str = "3d"
+    pose_frame: str = "camera"
 
 
 @dataclass
@@ -28,18 +49,21 @@ class Run:
     path : the run folder.
     config : ``config.yaml`` as a dict (empty when the file is absent).
     metrics : ``metrics.json`` as a dict (header, conventions and ``results``).
+    name : the run's label; the folder name unless set (``liris plot --compare``
+        sets ``parent/folder`` when two runs share a folder name).
     """
 
     path: Path
     config: dict[str, Any]
     metrics: dict[str, Any]
+    name: str = ""
     _cache: dict[str, Any] = field(default_factory=dict, repr=False)
 
-    @property
-    def name(self) -> str:
-        """The folder name, used as the run's label."""
-        return self.path.name
+    def __post_init__(self) -> None:
+        if not self.name:
+            self.name = self.path.name
 
+    # ---- metrics.json --------------------------------------------------------------
     @property
     def rows(self) -> list[dict[str, Any]]:
         """One metrics row per protocol and descriptor, as written by ``liris eval``."""
@@ -50,48 +74,175 @@ class Run:
         """The ground-truth and metric conventions the run was evaluated under."""
         return dict(self.metrics.get("conventions", {}))
 
-    def descriptors(self, protocol: int) -> list[str]:
-        """Descriptors that have results for ``protocol``, in run order."""
-        return [r["descriptor"] for r in self.rows if r.get("protocol") == protocol]
+    def protocols(self) -> list[int]:
+        """The protocols the run has results for, ascending."""
+        return sorted({int(r["protocol"]) for r in self.rows})
+
+    def descriptors(self, protocol: int | None = None) -> list[str]:
+        """Descriptors that have results (for ``protocol``, or any), in run order."""
+        names: list[str] = []
+        for r in self.rows:
+            if (protocol is None or r.get("protocol") == protocol) and \
+                    r["descriptor"] not in names:
+                names.append(r["descriptor"])
+        return names
 
     def row(self, protocol: int, descriptor: str) -> dict[str, Any]:
+        """The metrics row of ``descriptor`` under ``protocol``."""
         for r in self.rows:
             if r.get("protocol") == protocol and r.get("descriptor") == descriptor:
                 return r
-        raise LirisError(self.path, f"no protocol {protocol} result for {descriptor}")
+        raise LirisError(self.path / "metrics.json",
+                         f"no protocol {protocol} result for {descriptor}")
 
+    # ---- per-descriptor files ----------------------------------------------------------
     def pr(self, protocol: int, descriptor: str) -> pd.DataFrame:
         """``protocolN/<descriptor>/pr.csv``: threshold, precision, recall (tp, fp, fn)."""
-        return self._csv(f"protocol{protocol}/{descriptor}/pr.csv")
+        return self._csv(f"protocol{protocol}/{descriptor}/pr.csv", PR_COLUMNS)
 
-    def matches(self, descriptor: str) -> pd.DataFrame:
+    def matches(self, descriptor: str, required: bool = True) -> pd.DataFrame | None:
         """``protocol1/<descriptor>/matches.csv``: the best match of every query."""
-        return self._csv(f"protocol1/{descriptor}/matches.csv")
+        return self._csv(f"protocol1/{descriptor}/matches.csv", MATCH_COLUMNS, required)
 
-    def affinity(self, descriptor: str) -> np.ndarray:
-        """``protocol2/<descriptor>/affinity.npy``, memory-mapped (not read until used)."""
-        return self._npy(f"protocol2/{descriptor}/affinity.npy", mmap=True)
+    def timing(self, descriptor: str, required: bool = True) -> pd.DataFrame | None:
+        """``timing/<descriptor>.csv``: per-scan extraction seconds."""
+        return self._csv(f"timing/{descriptor}.csv", TIMING_COLUMNS, required)
 
+    def affinity(self, descriptor: str, required: bool = True) -> np.ndarray | None:
+        """``protocol2/<descriptor>/affinity.npy``, memory-mapped (not read until used).
+
+        Checked to be ``(N, N)`` for the run's N frames when ``positions.npy``
+        is present.
+        """
+        relative = f"protocol2/{descriptor}/affinity.npy"
+        if not required and not self.has(relative):
+            return None
+        matrix = self._npy(relative, mmap=True)
+        n = self.n_frames if self.has("positions.npy") else None
+        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or \
+                (n is not None and matrix.shape[0] != n):
+            expected = f"({n}, {n})" if n is not None else "a square matrix"
+            raise LirisError(self.path / relative,
+                             f"affinity has shape {matrix.shape}, expected {expected}")
+        return matrix
+
+    def affinity_decimated(self, descriptor: str,
+                           required: bool = True) -> tuple[np.ndarray, int] | None:
+        """``protocol2/<descriptor>/affinity_decimated.npy`` and its frame step ``k``.
+
+        Above 8192 frames protocol 2 keeps, for figures, only the distances
+        between frames ``0, k, 2k, …`` (float16, memory-mapped here); the
+        metrics still count every pair. ``k`` is read from the row's
+        ``affinity_stored`` note (``"… every kth frame (M x M) …"``) and checked
+        against the matrix side, ``ceil(N / k)``.
+        """
+        relative = f"protocol2/{descriptor}/affinity_decimated.npy"
+        if not required and not self.has(relative):
+            return None
+        matrix = self._npy(relative, mmap=True)
+        note = str(self.row(2, descriptor).get("affinity_stored") or "")
+        found = re.search(r"every (\d+)", note)
+        if found is None or int(found.group(1)) < 1:
+            raise LirisError(self.path / "metrics.json",
+                             f"{descriptor}: affinity_stored does not give the frame step of "
+                             f"{relative} (got {note!r})")
+        step = int(found.group(1))
+        side = math.ceil(self.n_frames / step) if self.has("positions.npy") else None
+        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or \
+                (side is not None and matrix.shape[0] != side):
+            expected = f"({side}, {side})" if side is not None else "a square matrix"
+            raise LirisError(self.path / relative,
+                             f"decimated affinity has shape {matrix.shape}, expected {expected} "
+                             f"(every {step}th frame)")
+        return matrix, step
+
+    # ---- trajectory and ground truth --------------------------------------------------
     def positions(self) -> np.ndarray:
-        """``positions.npy``: the ``(N, 3)`` translations used for ground truth."""
-        return self._npy("positions.npy")
+        """``positions.npy``: the ``(N, 3)`` float64 translations used for ground truth."""
+        if "positions.npy" not in self._cache:
+            positions = self._npy("positions.npy")
+            if positions.ndim != 2 or positions.shape[1] != 3:
+                raise LirisError(self.path / "positions.npy",
+                                 f"expected an (N, 3) array, got shape {positions.shape}")
+            self._cache["positions.npy"] = positions.astype(np.float64)
+        return self._cache["positions.npy"]
+
+    @property
+    def n_frames(self) -> int:
+        """Frames of the run (rows of ``positions.npy``)."""
+        return len(self.positions())
 
     def poses(self) -> np.ndarray:
         """``poses.npy``: the ``(N, 4, 4)`` poses in the run's pose frame."""
         return self._npy("poses.npy")
 
+    def gt_settings(self) -> GtSettings:
+        """Ground-truth conventions from config.yaml, falling back to metrics.json's."""
+        merged = {**_flat(self.conventions), **_flat(self.config)}
+        defaults = GtSettings()
+        try:
+            return GtSettings(
+                radius=float(merged.get("radius", defaults.radius)),
+                exclude=int(_scalar(merged.get("exclude", defaults.exclude))),
+                distance=str(merged.get("distance", defaults.distance)),
+                pose_frame=str(merged.get("pose_frame", defaults.pose_frame)),
+            )
+        except (TypeError, ValueError) as err:
+            raise LirisError(self.path / "config.yaml",
+                             f"bad ground-truth setting: {err}") from None
+
+    def ground_truth(self, step: int = 1):
+        """Ground truth recomputed from ``positions.npy`` exactly as the run defined it.
+
+        ``step`` > 1 keeps frames ``0, step, 2·step, …`` only (the frames of a
+        decimated affinity): their positive pairs are those of the full run,
+        but ``revisit`` then counts the exclusion window in kept frames.
+        """
+        from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+
+        s = self.gt_settings()
+        return compute_ground_truth(self.positions()[::step], s.radius, s.exclude, s.distance,
+                                    s.pose_frame)
+
+    # ---- config.yaml -------------------------------------------------------------------
+    @property
+    def sequence_path(self) -> Path | None:
+        """Where the scans of this run live, if the config or metrics record it."""
+        value = self.config.get("sequence")
+        if isinstance(value, dict):
+            value = value.get("path")
+        if not value:
+            value = (self.metrics.get("sequence") or {}).get("path")
+        return Path(value) if value else None
+
+    def descriptor_params(self, descriptor: str) -> tuple[str | None, dict]:
+        """``(preset, params)`` recorded for ``descriptor`` in config.yaml."""
+        entries = self.config.get("descriptors") or {}
+        if isinstance(entries, list):  # [{"name": ..., "preset": ..., "params": {...}}]
+            entries = {e.get("name"): e for e in entries if isinstance(e, dict)}
+        entry = entries.get(descriptor) or {}
+        return entry.get("preset"), dict(entry.get("params") or {})
+
+    # ---- files -------------------------------------------------------------------------
     def has(self, relative: str) -> bool:
         return (self.path / relative).is_file()
 
-    def _csv(self, relative: str) -> pd.DataFrame:
+    def _csv(self, relative: str, columns: tuple[str, ...] = (),
+             required: bool = True) -> pd.DataFrame | None:
         if relative not in self._cache:
             target = self.path / relative
             if not target.is_file():
+                if not required:
+                    return None
                 raise LirisError(target, "missing from the run folder")
             try:
-                self._cache[relative] = pd.read_csv(target)
-            except (ValueError, pd.errors.ParserError) as err:
+                table = pd.read_csv(target)
+            except (OSError, ValueError, pd.errors.ParserError) as err:
                 raise LirisError(target, f"not a readable CSV ({err})") from None
+            missing = [c for c in columns if c not in table.columns]
+            if missing:
+                raise LirisError(target, f"missing column(s) {', '.join(missing)}")
+            self._cache[relative] = table
         return self._cache[relative]
 
     def _npy(self, relative: str, mmap: bool = False) -> np.ndarray:
@@ -108,25 +259,66 @@ def load_run(path: str | Path) -> Run:
     """Open a run folder written by ``liris eval``.
 
     ``metrics.json`` is required (it holds the results); ``config.yaml`` is
-    read when present.
+    read when present. Anything that is not a run folder is a one-line
+    :class:`~lidar_iris_eval.errors.LirisError` naming the file at fault.
     """
     folder = Path(path)
-    if not folder.is_dir():
+    if not folder.exists():
         raise LirisError(folder, "run folder not found")
+    if not folder.is_dir():
+        raise LirisError(folder, "not a run folder (a file; expected a folder written by "
+                                 "liris eval)")
     metrics_path = folder / "metrics.json"
     if not metrics_path.is_file():
+        if (folder / "summary.csv").is_file():  # liris eval SEQ1 SEQ2 / --plan
+            raise LirisError(folder, "a multi-sequence run (summary.csv, no metrics.json): "
+                                     "give one of its NN-<sequence>/ run folders")
         raise LirisError(folder, "not a run folder: no metrics.json (written by liris eval)")
-    try:
-        metrics = json.loads(metrics_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise LirisError(metrics_path, f"not valid JSON ({err})") from None
+    metrics = _load_json(metrics_path)
     if not isinstance(metrics, dict) or not isinstance(metrics.get("results"), list):
         raise LirisError(metrics_path, "no 'results' list; not written by liris eval")
+    for row in metrics["results"]:
+        if not isinstance(row, dict) or "protocol" not in row or "descriptor" not in row:
+            raise LirisError(metrics_path, "every result needs 'protocol' and 'descriptor'")
     config: dict[str, Any] = {}
     config_path = folder / "config.yaml"
     if config_path.is_file():
         try:
             config = yaml.safe_load(config_path.read_text()) or {}
-        except yaml.YAMLError as err:
-            raise LirisError(config_path, f"not valid YAML ({err})") from None
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+            raise LirisError(config_path, f"not valid YAML ({_one_line(err)})") from None
+        if not isinstance(config, dict):
+            raise LirisError(config_path, "expected a mapping of settings")
     return Run(path=folder, config=config, metrics=metrics)
+
+
+def _load_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise LirisError(path, f"not valid JSON ({err})") from None
+
+
+def _one_line(err: Exception) -> str:
+    """YAML errors span several lines (a caret under the column); keep one."""
+    return " ".join(str(err).split())
+
+
+def _flat(settings: dict) -> dict:
+    """Lift ground-truth keys out of an optional ``ground_truth:`` section."""
+    if not isinstance(settings, dict):
+        return {}
+    flat = dict(settings)
+    for section in ("ground_truth", "gt", "conventions"):
+        if isinstance(settings.get(section), dict):
+            flat.update(settings[section])
+    return flat
+
+
+def _scalar(value: Any) -> Any:
+    """``exclude`` is stored as a number or as ``{value: 30, preset: paper}``."""
+    if isinstance(value, dict):
+        for key in ("value", "frames", "exclude"):
+            if key in value:
+                return value[key]
+    return value
