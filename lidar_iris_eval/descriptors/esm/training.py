@@ -137,8 +137,12 @@ def _score(net: ESMNet, data: SegmentSet, pairs: np.ndarray, rows: np.ndarray) -
 
 
 def _held_out(w: dict, arch, valid: SegmentSet, rng: np.random.Generator,
-              n: int = 3000) -> dict:
-    """Figures of the exported NumPy network on (at most ``n`` of) held-out segments."""
+              n: int = 3000, ignore_same_object: bool = False) -> dict:
+    """Figures of the exported NumPy network on (at most ``n`` of) held-out segments.
+
+    ``ignore_same_object``: pairs of one object that are not true pairs are
+    "don't care" (:func:`metrics.retrieval_metrics`'s ``ignore``).
+    """
     vpairs = true_pairs(valid)
     rows = np.arange(len(valid))
     if len(rows) > n:
@@ -150,8 +154,11 @@ def _held_out(w: dict, arch, valid: SegmentSet, rng: np.random.Generator,
     remap = -np.ones(len(valid), np.int64)
     remap[rows] = np.arange(len(rows))
     keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
+    key = valid.world_id[rows] * (int(valid.object_id.max()) + 1) + valid.object_id[rows]
+    key = np.where(valid.object_id[rows] > 0, key, -1 - np.arange(len(rows)))
     return retrieval_metrics(emb, valid.frame[rows], remap[vpairs[keep]],
-                             world=valid.world_id[rows], coarse=valid.coarse[rows])
+                             world=valid.world_id[rows], coarse=valid.coarse[rows],
+                             ignore=key if ignore_same_object else None)
 
 
 def run(train: SegmentSet, valid_set, args, stages: set, start: float,
@@ -281,6 +288,9 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
             entry = {k: v for k, v in metrics.items() if k != "roc"}
             entry["segments"] = len(valid)
             entry["objects_with_pairs"] = PairSampler(true_pairs(valid), valid).objects
+            loose = _held_out(w, arch, valid, np.random.default_rng(0),
+                              ignore_same_object=True)
+            entry["same_object_ignored"] = {k: v for k, v in loose.items() if k != "roc"}
             if name == "validation":
                 log["validation"] = entry
                 log["validation_roc"] = metrics["roc"]
