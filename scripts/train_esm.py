@@ -103,6 +103,8 @@ def main() -> None:
     ap.add_argument("--norm-scale", type=float, default=-1.0,
                     help="segment normalisation: 0 per-segment RMS radius, >0 this constant, "
                          "<0 (default) the training segments' median RMS radius")
+    ap.add_argument("--align-yaw", action="store_true",
+                    help="turn each segment to its horizontal principal axis before the network")
     ap.add_argument("--minutes", type=float, default=30.0, help="stop training after this")
     ap.add_argument("--stages", default="data,train,quality,export")
     ap.add_argument("--out", type=Path, default=None, help="weights file (default: in package)")

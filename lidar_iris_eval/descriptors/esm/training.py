@@ -43,7 +43,7 @@ MARGIN = 0.01
 
 
 def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256,
-            norm_scale: float = 0.0) -> np.ndarray:
+            norm_scale: float = 0.0, align_yaw: bool = False) -> np.ndarray:
     """One augmented, resampled, normalised copy of a raw segment (see module docstring)."""
     pts = points - points.mean(axis=0)
     yaw = rng.uniform(-np.pi, np.pi)
@@ -57,7 +57,7 @@ def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256,
         keep &= proj <= cut
     if keep.sum() >= 20:
         pts = pts[keep]
-    return normalise(resample(pts, n, rng), norm_scale)[0]
+    return normalise(resample(pts, n, rng), norm_scale, align_yaw)[0]
 
 
 def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -68,7 +68,7 @@ def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -
         for i in range(0, len(rows), 128):
             batch = np.stack([normalise(resample(data.segment(s), net.arch.n_points,
                                                  np.random.default_rng([seed, int(s)])),
-                                        net.arch.norm_scale)[0]
+                                        net.arch.norm_scale, net.arch.align_yaw)[0]
                               for s in rows[i:i + 128]])
             idx = network.neighbour_index(batch, net.arch)
             out.append(net(torch.from_numpy(batch), idx).numpy())
@@ -149,7 +149,8 @@ def _held_out(w: dict, arch, valid: SegmentSet, rng: np.random.Generator,
         rows = np.sort(rng.choice(len(valid), n, replace=False))
     emb = network.embed(w, arch, np.stack([
         normalise(resample(valid.segment(s), arch.n_points,
-                           np.random.default_rng([0, int(s)])), arch.norm_scale)[0]
+                           np.random.default_rng([0, int(s)])), arch.norm_scale,
+                  arch.align_yaw)[0]
         for s in rows]))
     remap = -np.ones(len(valid), np.int64)
     remap[rows] = np.arange(len(rows))
@@ -179,7 +180,7 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
     if norm < 0:  # the median RMS radius of the training segments, rounded to 0.1 m
         rms = [normalise(train.segment(s))[1] for s in range(0, len(train), 5)]
         norm = round(float(np.median(rms)), 1)
-    net = ESMNet(network.Arch(norm_scale=norm))
+    net = ESMNet(network.Arch(norm_scale=norm, align_yaw=bool(getattr(args, "align_yaw", False))))
     ckpt = work / "net.pt"
     log = {"train_segments": len(train), "train_pairs": int(len(pairs)),
            "train_objects_with_pairs": sampler.objects, "norm_scale": norm,
@@ -228,8 +229,8 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
                 next_eval = time.time() + eval_every
             net.train()
             ab = sampler(args.batch, rng)
-            pts = np.stack([augment(train.segment(s), rng, norm_scale=norm)
-                            for s in ab.ravel()])
+            pts = np.stack([augment(train.segment(s), rng, norm_scale=norm,
+                                    align_yaw=net.arch.align_yaw) for s in ab.ravel()])
             idx = network.neighbour_index(pts, net.arch)
             emb = net(torch.from_numpy(pts), idx).reshape(len(ab), 2, -1)
             loss, trip, dpos = wl_loss(emb[:, 0], emb[:, 1], train.coarse[ab[:, 0]],
