@@ -272,7 +272,7 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
             loss.backward()
             opt.step()
         log["quality_positive_rate"] = float(y.mean())
-        log["quality_loss"] = float(loss)
+        log["quality_loss"] = float(loss.item())
         torch.save(net.state_dict(), ckpt)
     if "export" in stages:
         net.eval()
