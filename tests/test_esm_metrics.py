@@ -41,3 +41,20 @@ def test_true_pairs_need_same_object_place_and_frame_gap():
     # 0-1: same object, 0.5 m, 30 frames -> pair; 0-2: only 3 frames apart; 0-3: 9 m apart;
     # 1-2: 27 frames, 0.1 m -> pair; 4 is another object
     assert true_pairs(data).tolist() == [[0, 1], [1, 2]]
+
+
+def test_same_object_non_pairs_can_be_ignored():
+    # 0<->2 true pair; 3 is the same object as 0 but another piece (not a pair), nearer to
+    # 0 than its partner; 1 is an unrelated object
+    emb = np.array([[0.0, 0.0], [5.0, 0.0], [0.2, 0.0], [0.1, 0.0]])
+    frame = np.array([0, 0, 20, 20])
+    pairs = np.array([[0, 2]])
+    strict = retrieval_metrics(emb, frame, pairs, ks=(1,))
+    # strict: (0,3) is a negative nearer than the positive -> AUC 2/3; query 0 misses at k=1
+    assert np.isclose(strict["auc"], 2 / 3) and strict["accuracy_at_k"][1] == 0.5
+    key = np.array([7, 8, 7, 7])
+    loose = retrieval_metrics(emb, frame, pairs, ks=(1,), ignore=key)
+    # (0,3) no longer counts ((2,3) share a frame): the negatives left, (1,2) and (1,3), are
+    # both farther than the positive, and both queries hit at k=1
+    assert loose["negatives"] == 2 and loose["auc"] == 1.0
+    assert loose["accuracy_at_k"][1] == 1.0

@@ -109,3 +109,25 @@ def test_fixed_normalisation_keeps_size():
     assert np.isclose(rms_b / rms_a, 3.0)
     assert np.allclose(b, 3.0 * a, atol=1e-5)  # size survives; per-segment RMS would equalise
     assert np.isclose(np.sqrt((a.astype(float) ** 2).sum(1).mean()), rms_a / 0.9, rtol=1e-5)
+
+
+def test_yaw_alignment_removes_the_heading():
+    from lidar_iris_eval.descriptors.esm.segmentation import yaw_align
+
+    rng = np.random.default_rng(3)
+    # an asymmetric L-shaped blob: 3 m along x, 1 m along y, a heavier end at +x
+    pts = np.concatenate([rng.uniform([0, 0, 0], [3, 1, 1.5], (300, 3)),
+                          rng.uniform([2.4, 1, 0], [3, 2, 1.5], (80, 3))])
+    ref, _ = normalise(pts, 0.9, align_yaw=True)
+    for yaw in (0.4, 1.9, -2.7, np.pi):
+        c, s = np.cos(yaw), np.sin(yaw)
+        turned = pts @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + [5.0, -2.0, 0.3]
+        out, _ = normalise(turned, 0.9, align_yaw=True)
+        assert np.allclose(out, ref, atol=1e-5)
+    # the major axis ends on x (largest spread) and the longer tail on +x
+    assert ref[:, 0].var() > ref[:, 1].var() and (ref[:, 0] ** 3).sum() > 0
+    # heights untouched, and a rotation only: distances to the centroid kept
+    centred = pts - pts.mean(axis=0)
+    assert np.allclose(yaw_align(centred)[:, 2], centred[:, 2])
+    assert np.allclose(np.linalg.norm(yaw_align(centred), axis=1),
+                       np.linalg.norm(centred, axis=1))

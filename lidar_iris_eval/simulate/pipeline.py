@@ -91,8 +91,14 @@ def _grid_lines(xs: np.ndarray, ys: np.ndarray, extend: float) -> list[np.ndarra
     return vertical + horizontal
 
 
-def build_scenario(cfg: SimConfig) -> Scenario:
-    """Generate the world and the trajectory described by ``cfg``."""
+def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None) -> Scenario:
+    """Generate the world and the trajectory described by ``cfg``.
+
+    ``world_params`` replaces the default :class:`WorldParams` (only ESM's training
+    data does this, e.g. for ``shape_variety``; sequences written by ``liris
+    simulate`` always use the defaults).
+    """
+    wp = world_params if world_params is not None else WorldParams()
     sensor = get_sensor(cfg.sensor, cfg.azimuth_steps)
     rng_world = np.random.default_rng([cfg.seed, _WORLD])
     rng_route = np.random.default_rng([cfg.seed, _ROUTE])
@@ -102,13 +108,13 @@ def build_scenario(cfg: SimConfig) -> Scenario:
         poses = trajectory_from_file(cam, tr, cfg.frames)
         xy = poses[:, :2, 3]
         ground_pts = poses[:, :3, 3] - sensor.mount_height * poses[:, :3, 2]
-        world = build_world([xy], rng_world, WorldParams(), height_samples=ground_pts)
+        world = build_world([xy], rng_world, wp, height_samples=ground_pts)
         line = xy
     else:
         tr = default_tr()
         a, b = cfg.blocks
         xs, ys = street_grid(rng_world, a + 2, b + 2, cfg.block_size)
-        world = build_world(_grid_lines(xs, ys, 40.0), rng_world, WorldParams())
+        world = build_world(_grid_lines(xs, ys, 40.0), rng_world, wp)
         corners = [(i + 1, j + 1) for i, j in route_corners(cfg.route, a, b, laps=1 + cfg.frames)]
         rp = RouteParams(lateral_max=cfg.lateral_max)
         waypoints = grid_waypoints(corners, xs, ys, rng_route, rp, cfg.frames * rp.step * 1.3)

@@ -50,6 +50,11 @@ class WorldParams:
     tree_spacing: tuple[float, float] = (6.0, 30.0)
     light_spacing: tuple[float, float] = (18.0, 45.0)
     parked_run: float = 0.45
+    #: opt-in (off for every preset and sequence): parked cars drawn from five body types
+    #: (hatchback, sedan, estate, SUV, van) and trees with multi-lobed or conifer crowns.
+    #: Off, no extra random number is drawn, so the default worlds stay byte-identical.
+    #: ESM's training worlds turn it on (objects of one class must differ in shape).
+    shape_variety: bool = False
 
 
 @dataclass(frozen=True)
@@ -254,8 +259,11 @@ class _Placer:
         rv = rh * rng.uniform(0.8, 1.5)
         self.rows.append((CYLINDER, (x, y, z0 + trunk_h / 2 - 0.2), (tr, tr, trunk_h / 2 + 0.2),
                           0.0, labels.TRUNK, 0, 0.35))
-        self.rows.append((ELLIPSOID, (x, y, z0 + trunk_h + 0.8 * rv), (rh, rh, rv), 0.0,
-                          labels.VEGETATION, 0, 0.45))
+        if self.p.shape_variety:
+            self.rows.extend(crown_rows(rng, x, y, z0 + trunk_h, rh, rv))
+        else:
+            self.rows.append((ELLIPSOID, (x, y, z0 + trunk_h + 0.8 * rv), (rh, rh, rv), 0.0,
+                              labels.VEGETATION, 0, 0.45))
         self.claim(x, y, 0.6, 0.6, 0.0)
 
     def pole(self, x, y, yaw, sign: bool) -> None:
@@ -274,8 +282,9 @@ class _Placer:
 
     def car(self, x, y, yaw, label=labels.CAR) -> None:
         self._new_object()
-        self.rows.extend(car_rows(self.rng, x, y, self.base(x, y) - self.g.curb, yaw, label,
-                                  self.next_instance))
+        make = varied_car_rows if self.p.shape_variety else car_rows
+        self.rows.extend(make(self.rng, x, y, self.base(x, y) - self.g.curb, yaw, label,
+                              self.next_instance))
         self.next_instance += 1
         self.claim(x, y, 2.4, 1.0, yaw)
 
@@ -308,6 +317,65 @@ def car_rows(rng, x, y, z_road, yaw, label, instance) -> list[tuple]:
         (BOX, (x + c * shift, y + s * shift, z_road + 0.3 + body_h + cab_h / 2),
          (length * 0.27, width * 0.45, cab_h / 2), yaw, label, instance, refl),
     ]
+
+
+#: body types for ``shape_variety``: (length, width, body height, cabin height) ranges in
+#: metres, cabin length and width as fractions of the body's, cabin shift range (fraction
+#: of half the length, + towards the front)
+CAR_TYPES = {
+    "hatchback": ((3.5, 4.1), (1.65, 1.8), (0.55, 0.7), (0.55, 0.7), (0.6, 0.75), 0.45,
+                  (-0.5, -0.2)),
+    "sedan": ((4.3, 4.9), (1.7, 1.85), (0.6, 0.75), (0.45, 0.6), (0.45, 0.55), 0.45,
+              (-0.2, 0.1)),
+    "estate": ((4.4, 4.9), (1.75, 1.9), (0.6, 0.75), (0.5, 0.62), (0.7, 0.8), 0.46,
+               (-0.35, -0.15)),
+    "suv": ((4.3, 4.9), (1.8, 2.0), (0.8, 1.0), (0.6, 0.8), (0.6, 0.75), 0.46, (-0.3, -0.1)),
+    "van": ((4.6, 5.2), (1.85, 2.0), (1.0, 1.25), (0.7, 0.95), (0.75, 0.85), 0.48,
+            (-0.2, -0.1)),
+}
+
+
+def varied_car_rows(rng, x, y, z_road, yaw, label, instance) -> list[tuple]:
+    """A parked car of a random body type (``WorldParams.shape_variety``): body and cabin boxes."""
+    names = list(CAR_TYPES)
+    length_r, width_r, body_r, cab_r, cab_len_r, cab_w, shift_r = CAR_TYPES[
+        names[int(rng.integers(len(names)))]]
+    length, width = rng.uniform(*length_r), rng.uniform(*width_r)
+    body_h, cab_h = rng.uniform(*body_r), rng.uniform(*cab_r)
+    cab_len = rng.uniform(*cab_len_r) * length / 2
+    shift = rng.uniform(*shift_r) * length / 2
+    clearance = rng.uniform(0.15, 0.35)
+    refl = rng.uniform(0.1, 0.6)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return [
+        (BOX, (x, y, z_road + clearance + body_h / 2), (length / 2, width / 2, body_h / 2), yaw,
+         label, instance, refl),
+        (BOX, (x + c * shift, y + s * shift, z_road + clearance + body_h + cab_h / 2),
+         (cab_len, width * cab_w, cab_h / 2), yaw, label, instance, refl),
+    ]
+
+
+def crown_rows(rng, x, y, z_top_trunk, rh, rv) -> list[tuple]:
+    """A tree crown for ``WorldParams.shape_variety``: one to three lobes, or a conifer."""
+    refl = 0.45
+    if rng.random() < 0.25:  # conifer: a slim, tall crown starting low, with a narrower top
+        rh2 = rh * rng.uniform(0.35, 0.6)
+        rv2 = rh * rng.uniform(1.6, 2.6)
+        zc = z_top_trunk - 0.5 + rv2
+        return [(ELLIPSOID, (x, y, zc), (rh2, rh2, rv2), 0.0, labels.VEGETATION, 0, refl),
+                (ELLIPSOID, (x, y, zc + 0.8 * rv2), (0.5 * rh2, 0.5 * rh2, 0.5 * rv2), 0.0,
+                 labels.VEGETATION, 0, refl)]
+    ax, ay = rh * rng.uniform(0.75, 1.25), rh * rng.uniform(0.75, 1.25)
+    rows = [(ELLIPSOID, (x, y, z_top_trunk + 0.8 * rv), (ax, ay, rv), 0.0, labels.VEGETATION, 0,
+             refl)]
+    for _ in range(int(rng.integers(0, 3))):  # side lobes
+        ang = rng.uniform(0, 2 * np.pi)
+        off = rh * rng.uniform(0.5, 0.9)
+        r = rh * rng.uniform(0.45, 0.75)
+        rows.append((ELLIPSOID, (x + off * np.cos(ang), y + off * np.sin(ang),
+                                 z_top_trunk + 0.8 * rv + rv * rng.uniform(-0.4, 0.3)),
+                     (r, r, r * rng.uniform(0.7, 1.2)), 0.0, labels.VEGETATION, 0, refl))
+    return rows
 
 
 def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:

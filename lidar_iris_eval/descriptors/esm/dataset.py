@@ -77,15 +77,20 @@ class SegmentSet:
 
 def simulate_segments(
     config_overrides: dict, world_index: int = 0, params: SegmentParams | None = None,
-    every: int = 1, progress: bool = True,
+    every: int = 1, progress: bool = True, shape_variety: bool = False,
 ) -> SegmentSet:
-    """Simulate a sequence in memory and segment every ``every``-th scan."""
+    """Simulate a sequence in memory and segment every ``every``-th scan.
+
+    ``shape_variety`` builds the world with :attr:`WorldParams.shape_variety`
+    (varied car bodies and tree crowns; never used by written sequences).
+    """
     from lidar_iris_eval.simulate.pipeline import _NOISE, build_scenario
     from lidar_iris_eval.simulate.presets import resolve_config
     from lidar_iris_eval.simulate.sensors import simulate_scan
+    from lidar_iris_eval.simulate.world import WorldParams
 
     cfg = resolve_config(None, config_overrides)
-    scen = build_scenario(cfg)
+    scen = build_scenario(cfg, WorldParams(shape_variety=shape_variety))
     dirs = scen.sensor.grid.directions
     pts, offs, obj, coarse, frame, world, purity = [], [0], [], [], [], [], []
     frames = range(0, len(scen.poses), every)

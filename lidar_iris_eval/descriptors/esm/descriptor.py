@@ -117,7 +117,8 @@ class ESM(Descriptor):
         p = self.params
         _, arch = self.weights()
         return SegmentParams(p.max_range, p.ground_z, p.voxel, p.radius, p.min_points,
-                             p.max_points, arch.n_points, p.seed, arch.norm_scale)
+                             p.max_points, arch.n_points, p.seed, arch.norm_scale,
+                             arch.align_yaw)
 
     def weights(self) -> tuple[dict, network.Arch]:
         if self._weights is None:

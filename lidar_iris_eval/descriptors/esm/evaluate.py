@@ -115,7 +115,8 @@ def write_golden(valid: Path, out: Path, n: int = 6) -> dict:
     rows = np.sort(first[data.object_id[first] > 0])[:n]
     w, arch = network.load_weights()
     pts = np.stack([normalise(resample(data.segment(s), arch.n_points,
-                                       np.random.default_rng([0, int(s)])), arch.norm_scale)[0]
+                                       np.random.default_rng([0, int(s)])), arch.norm_scale,
+                              arch.align_yaw)[0]
                     for s in rows])
     emb = network.embed(w, arch, pts)
     gold = {"points": pts, "embedding": emb, "quality": network.quality(w, emb),

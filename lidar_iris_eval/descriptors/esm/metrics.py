@@ -35,8 +35,20 @@ def roc_curve(pos: np.ndarray, neg: np.ndarray, n: int = 101) -> tuple[np.ndarra
 def retrieval_metrics(
     emb: np.ndarray, frame: np.ndarray, pairs: np.ndarray, min_frame_gap: int = 10,
     ks: tuple = (1, 5, 10, 25), world: np.ndarray | None = None,
+    coarse: np.ndarray | None = None, ignore: np.ndarray | None = None,
 ) -> dict:
-    """ROC AUC, a coarse ROC and accuracy@k of embeddings ``emb`` (S, d)."""
+    """ROC AUC, a coarse ROC and accuracy@k of embeddings ``emb`` (S, d).
+
+    With ``coarse`` (a class per segment) the AUC is also split by negatives:
+    ``auc_within_class`` against other objects of the query's class (the hard
+    case) and ``auc_cross_class`` against objects of other classes.
+
+    ``ignore`` (a key per segment, e.g. world and object id) marks pairs with the
+    same key that are not true pairs as "don't care": they are neither
+    negatives of the ROC nor candidates of the k nearest (two views of one car
+    from its front and its back, whose centroids lie more than the pair radius
+    apart, show the same object but not the same piece).
+    """
     n = len(emb)
     world = np.zeros(n, np.int64) if world is None else world
     sq = (emb**2).sum(1)
@@ -46,6 +58,8 @@ def retrieval_metrics(
     truth = np.zeros((n, n), bool)
     truth[pairs[:, 0], pairs[:, 1]] = True
     truth[pairs[:, 1], pairs[:, 0]] = True
+    if ignore is not None:
+        valid &= truth | (ignore[:, None] != ignore[None, :])
     iu = np.triu_indices(n, 1)
     v = valid[iu]
     pos = d2[iu][v & truth[iu]]
@@ -56,6 +70,13 @@ def retrieval_metrics(
     has = truth.any(axis=1)
     hit = np.take_along_axis(truth, order, axis=1)[has]
     acc = {int(k): float(hit[:, :k].any(axis=1).mean()) if has.any() else None for k in ks}
-    return {"auc": roc_auc(pos, neg), "positives": int(len(pos)), "negatives": int(len(neg)),
+    split = {}
+    if coarse is not None:
+        same = (coarse[:, None] == coarse[None, :])[iu]
+        for name, m in (("auc_within_class", same), ("auc_cross_class", ~same)):
+            neg_m = d2[iu][v & ~truth[iu] & m]
+            split[name] = roc_auc(pos, neg_m) if len(neg_m) else None
+    return {"auc": roc_auc(pos, neg), **split,
+            "positives": int(len(pos)), "negatives": int(len(neg)),
             "queries": int(has.sum()), "accuracy_at_k": acc,
             "roc": {"fpr": fpr.round(4).tolist(), "tpr": tpr.round(4).tolist()}}

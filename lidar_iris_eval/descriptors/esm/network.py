@@ -59,6 +59,7 @@ class Arch:
     fc: tuple = (64, 32, 16)
     bn_eps: float = 1e-5
     norm_scale: float = 0.0  # segment normalisation the network was trained with (segmentation)
+    align_yaw: bool = False  # segments turned to their principal axis (segmentation.yaw_align)
 
     def to_json(self) -> str:
         return json.dumps({k: list(v) if isinstance(v, tuple) else v

@@ -55,6 +55,7 @@ class SegmentParams:
     n_points: int = 256
     seed: int = 0
     norm_scale: float = 0.0  # 0: per-segment RMS radius; > 0: this constant (m)
+    align_yaw: bool = False  # turn each segment to its horizontal principal axis
 
 
 @dataclass(frozen=True)
@@ -116,12 +117,36 @@ def euclidean_clusters(points: np.ndarray, radius: float) -> np.ndarray:
     return comp.astype(np.int64)
 
 
-def normalise(sample: np.ndarray, norm_scale: float = 0.0) -> tuple[np.ndarray, float]:
-    """Zero-centre and divide by the RMS radius, or by ``norm_scale`` when > 0.
+def yaw_align(centred: np.ndarray) -> np.ndarray:
+    """Turn a zero-centred segment about z so its horizontal principal axis is +x.
+
+    The 180-degree ambiguity of an axis is settled by the sign of the third
+    moment along it (the longer tail points to +x). This removes the yaw a
+    segment is seen at (the sensor's heading), which a small network otherwise
+    has to learn from rotation augmentation alone.
+    """
+    xy = np.asarray(centred[:, :2], dtype=np.float64)
+    _, vec = np.linalg.eigh(xy.T @ xy)
+    c, s = vec[0, 1], vec[1, 1]  # the major axis (largest eigenvalue last)
+    u = xy[:, 0] * c + xy[:, 1] * s
+    v = -xy[:, 0] * s + xy[:, 1] * c
+    if (u**3).sum() < 0:
+        u, v = -u, -v
+    out = np.array(centred, dtype=np.float64)
+    out[:, 0], out[:, 1] = u, v
+    return out
+
+
+def normalise(sample: np.ndarray, norm_scale: float = 0.0,
+              align_yaw: bool = False) -> tuple[np.ndarray, float]:
+    """Zero-centre (optionally :func:`yaw_align`) and divide by the RMS radius, or by
+    ``norm_scale`` when > 0.
 
     Returns the normalised points and the segment's RMS radius.
     """
     centred = sample - sample.mean(axis=0)
+    if align_yaw:
+        centred = yaw_align(centred)
     rms = float(np.sqrt((centred**2).sum(axis=1).mean()))
     scale = norm_scale if norm_scale > 0 else (rms if rms > 1e-9 else 1.0)
     return (centred / scale).astype(np.float32), rms
@@ -169,7 +194,7 @@ def segment_scan(
         vi = order[bounds[c]:bounds[c + 1]]
         seg = vox[vi]
         rng = np.random.default_rng([p.seed, s])
-        normed, scale = normalise(resample(seg, p.n_points, rng), p.norm_scale)
+        normed, scale = normalise(resample(seg, p.n_points, rng), p.norm_scale, p.align_yaw)
         out_pts.append(normed)
         cents.append(seg.mean(axis=0))
         scales.append(scale)

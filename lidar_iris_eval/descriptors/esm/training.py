@@ -1,6 +1,9 @@
 """Training ESM's network (needs torch: the ``train`` extra). Driven by scripts/train_esm.py.
 
-* **Batches**: ``batch`` true pairs (anchor, positive) of distinct objects.
+* **Batches**: ``batch`` distinct objects drawn uniformly among the objects that
+  have true pairs, one random true pair (anchor, positive) of each. (Drawing
+  pairs uniformly would favour objects seen in many scans: the number of pairs
+  grows with the square of the views.)
 * **Augmentation** (SegMap/ESM): a random yaw in [-180, 180) degrees, 0-10 %
   of the points removed at random, and with probability 1/2 a partial
   occlusion that removes the points beyond a random vertical plane (0-50 % of
@@ -11,6 +14,11 @@
 * **Hard negatives within the class**: each anchor's negative is the closest
   positive of another pair in the batch showing a different object of the same
   coarse class (any class when the batch has none).
+* **Schedule**: Adam, learning rate ``lr`` until 70 % of the time budget, then
+  ``lr / 5``. Every ``eval_every`` minutes (and at the end) the network is
+  scored on a separate *selection* world (segment-retrieval ROC AUC) and the
+  best checkpoint is kept; the reported validation world is never used for a
+  choice.
 * **Quality branch**: afterwards, on the frozen embeddings of the training
   segments, FC(2) + softmax with cross-entropy; label 1 when a true partner is
   among the segment's 25 nearest neighbours (frames >= 10 apart).
@@ -35,7 +43,7 @@ MARGIN = 0.01
 
 
 def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256,
-            norm_scale: float = 0.0) -> np.ndarray:
+            norm_scale: float = 0.0, align_yaw: bool = False) -> np.ndarray:
     """One augmented, resampled, normalised copy of a raw segment (see module docstring)."""
     pts = points - points.mean(axis=0)
     yaw = rng.uniform(-np.pi, np.pi)
@@ -49,7 +57,7 @@ def augment(points: np.ndarray, rng: np.random.Generator, n: int = 256,
         keep &= proj <= cut
     if keep.sum() >= 20:
         pts = pts[keep]
-    return normalise(resample(pts, n, rng), norm_scale)[0]
+    return normalise(resample(pts, n, rng), norm_scale, align_yaw)[0]
 
 
 def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -60,7 +68,7 @@ def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -
         for i in range(0, len(rows), 128):
             batch = np.stack([normalise(resample(data.segment(s), net.arch.n_points,
                                                  np.random.default_rng([seed, int(s)])),
-                                        net.arch.norm_scale)[0]
+                                        net.arch.norm_scale, net.arch.align_yaw)[0]
                               for s in rows[i:i + 128]])
             idx = network.neighbour_index(batch, net.arch)
             out.append(net(torch.from_numpy(batch), idx).numpy())
@@ -80,19 +88,28 @@ def wl_loss(ea: torch.Tensor, ep: torch.Tensor, coarse: np.ndarray, objects: np.
     return (trip + d_pos).mean(), trip.detach(), d_pos.detach()
 
 
-def sample_batch(pairs: np.ndarray, data: SegmentSet, batch: int, rng: np.random.Generator):
-    """``batch`` pairs with distinct objects (per world)."""
-    chosen, seen = [], set()
-    for i in rng.permutation(len(pairs)):
-        a, b = pairs[i]
-        key = (int(data.world_id[a]), int(data.object_id[a]))
-        if key in seen:
-            continue
-        seen.add(key)
-        chosen.append((a, b) if rng.random() < 0.5 else (b, a))
-        if len(chosen) == batch:
-            break
-    return np.asarray(chosen)
+class PairSampler:
+    """Batches of true pairs with distinct objects, objects drawn uniformly (module docstring)."""
+
+    def __init__(self, pairs: np.ndarray, data: SegmentSet):
+        key = data.world_id[pairs[:, 0]] * (int(data.object_id.max()) + 1) \
+            + data.object_id[pairs[:, 0]]
+        order = np.argsort(key, kind="stable")
+        self.pairs = pairs[order]
+        _, self.starts, self.counts = np.unique(key[order], return_index=True,
+                                                return_counts=True)
+
+    @property
+    def objects(self) -> int:
+        return len(self.starts)
+
+    def __call__(self, batch: int, rng: np.random.Generator) -> np.ndarray:
+        obj = rng.choice(self.objects, min(batch, self.objects), replace=False)
+        pick = self.starts[obj] + (rng.random(len(obj)) * self.counts[obj]).astype(np.int64)
+        ab = self.pairs[pick]
+        flip = rng.random(len(ab)) < 0.5
+        ab[flip] = ab[flip][:, ::-1]
+        return ab
 
 
 def knn_labels(emb: np.ndarray, data: SegmentSet, rows: np.ndarray, pairs: np.ndarray,
@@ -109,33 +126,111 @@ def knn_labels(emb: np.ndarray, data: SegmentSet, rows: np.ndarray, pairs: np.nd
                      for i in range(len(rows))], dtype=np.int64)
 
 
-def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
-    """Train, fit the quality branch and export; ``valid_set()`` gives the held-out segments."""
+def _score(net: ESMNet, data: SegmentSet, pairs: np.ndarray, rows: np.ndarray) -> dict:
+    """Retrieval metrics of the current network on segments ``rows`` of ``data``."""
+    emb = embed_eval(net, data, rows)
+    remap = -np.ones(len(data), np.int64)
+    remap[rows] = np.arange(len(rows))
+    keep = (remap[pairs[:, 0]] >= 0) & (remap[pairs[:, 1]] >= 0)
+    return retrieval_metrics(emb, data.frame[rows], remap[pairs[keep]],
+                             world=data.world_id[rows])
+
+
+def _held_out(w: dict, arch, valid: SegmentSet, rng: np.random.Generator,
+              n: int = 3000, ignore_same_object: bool = False) -> dict:
+    """Figures of the exported NumPy network on (at most ``n`` of) held-out segments.
+
+    ``ignore_same_object``: pairs of one object that are not true pairs are
+    "don't care" (:func:`metrics.retrieval_metrics`'s ``ignore``).
+    """
+    vpairs = true_pairs(valid)
+    rows = np.arange(len(valid))
+    if len(rows) > n:
+        rows = np.sort(rng.choice(len(valid), n, replace=False))
+    emb = network.embed(w, arch, np.stack([
+        normalise(resample(valid.segment(s), arch.n_points,
+                           np.random.default_rng([0, int(s)])), arch.norm_scale,
+                  arch.align_yaw)[0]
+        for s in rows]))
+    remap = -np.ones(len(valid), np.int64)
+    remap[rows] = np.arange(len(rows))
+    keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
+    key = valid.world_id[rows] * (int(valid.object_id.max()) + 1) + valid.object_id[rows]
+    key = np.where(valid.object_id[rows] > 0, key, -1 - np.arange(len(rows)))
+    return retrieval_metrics(emb, valid.frame[rows], remap[vpairs[keep]],
+                             world=valid.world_id[rows], coarse=valid.coarse[rows],
+                             ignore=key if ignore_same_object else None)
+
+
+def run(train: SegmentSet, valid_set, args, stages: set, start: float,
+        select_set=None, extra_valid: dict | None = None) -> None:
+    """Train, fit the quality branch and export.
+
+    ``valid_set()`` gives the held-out segments the figures are reported on,
+    ``select_set()`` (optional) the segments checkpoints are chosen on and
+    ``extra_valid`` (name -> callable) further held-out sets reported beside them.
+    """
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     work = Path(args.work)
     pairs = true_pairs(train)
+    sampler = PairSampler(pairs, train)
     norm = float(args.norm_scale)
     if norm < 0:  # the median RMS radius of the training segments, rounded to 0.1 m
         rms = [normalise(train.segment(s))[1] for s in range(0, len(train), 5)]
         norm = round(float(np.median(rms)), 1)
-    net = ESMNet(network.Arch(norm_scale=norm))
+    net = ESMNet(network.Arch(norm_scale=norm, align_yaw=bool(getattr(args, "align_yaw", False))))
     ckpt = work / "net.pt"
-    log = {"train_segments": len(train), "train_pairs": int(len(pairs)), "norm_scale": norm,
+    log = {"train_segments": len(train), "train_pairs": int(len(pairs)),
+           "train_objects_with_pairs": sampler.objects, "norm_scale": norm,
            "classes": {COARSE_NAMES[c]: int((train.coarse == c).sum())
                        for c in np.unique(train.coarse)}}
     if "train" in stages:
-        opt = torch.optim.Adam(net.parameters(), lr=1e-3)
-        deadline = start + args.minutes * 60
-        hist = []
+        lr = getattr(args, "lr", 1e-3)
+        opt = torch.optim.Adam(net.parameters(), lr=lr)
+        budget = args.minutes * 60
+        deadline = start + budget
+        t_train = time.time()
+        eval_every = getattr(args, "eval_every", 8.0) * 60
+        sel = select_set() if select_set is not None else None
+        if sel is not None:
+            sel_pairs = true_pairs(sel)
+            sel_rows = np.arange(len(sel))
+            if len(sel_rows) > 1500:
+                sel_rows = np.sort(np.random.default_rng(1).choice(len(sel), 1500,
+                                                                   replace=False))
+        best, next_eval, dropped, hist, checks = -1.0, time.time() + eval_every, False, [], []
+
+        def check(step: int) -> None:
+            nonlocal best
+            if sel is None:
+                return
+            m = _score(net, sel, sel_pairs, sel_rows)
+            checks.append({"step": step, "auc": round(m["auc"], 4),
+                           "acc25": round(m["accuracy_at_k"][25], 4)})
+            print(f"select step {step}: auc {m['auc']:.4f} @25 {m['accuracy_at_k'][25]:.4f}",
+                  flush=True)
+            if m["auc"] > best:
+                best = m["auc"]
+                torch.save(net.state_dict(), work / "best.pt")
+
         for step in range(args.steps):
-            if time.time() > deadline:
+            now = time.time()
+            if now > deadline:
                 break
+            if not dropped and now > t_train + 0.7 * (deadline - t_train):
+                for g in opt.param_groups:
+                    g["lr"] = lr / 5
+                dropped = True
+                print(f"step {step}: learning rate {lr / 5:g}", flush=True)
+            if now > next_eval:
+                check(step)
+                next_eval = time.time() + eval_every
             net.train()
-            ab = sample_batch(pairs, train, args.batch, rng)
-            pts = np.stack([augment(train.segment(s), rng, norm_scale=norm)
-                            for s in ab.ravel()])
+            ab = sampler(args.batch, rng)
+            pts = np.stack([augment(train.segment(s), rng, norm_scale=norm,
+                                    align_yaw=net.arch.align_yaw) for s in ab.ravel()])
             idx = network.neighbour_index(pts, net.arch)
             emb = net(torch.from_numpy(pts), idx).reshape(len(ab), 2, -1)
             loss, trip, dpos = wl_loss(emb[:, 0], emb[:, 1], train.coarse[ab[:, 0]],
@@ -150,8 +245,13 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
                       f"{(time.time() - start) / 60:.1f} min", flush=True)
             if step % 100 == 99:
                 torch.save(net.state_dict(), ckpt)
+        check(len(hist))
         log["steps"] = len(hist)
         log["final_loss"] = float(np.mean(hist[-50:], axis=0)[0])
+        log["selection_checks"] = checks
+        if sel is not None:
+            net.load_state_dict(torch.load(work / "best.pt"))
+            log["selected_step"] = max(checks, key=lambda c: c["auc"])["step"]
         torch.save(net.state_dict(), ckpt)
     else:
         net.load_state_dict(torch.load(ckpt))
@@ -172,7 +272,7 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
             loss.backward()
             opt.step()
         log["quality_positive_rate"] = float(y.mean())
-        log["quality_loss"] = float(loss)
+        log["quality_loss"] = float(loss.item())
         torch.save(net.state_dict(), ckpt)
     if "export" in stages:
         net.eval()
@@ -182,22 +282,21 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float) -> None:
         np.savez(tmp, **weights)
         tmp.replace(out)
         w, arch = network.load_weights(out)
-        valid = valid_set()
-        vpairs = true_pairs(valid)
-        rows = np.arange(len(valid))
-        if len(rows) > 3000:
-            rows = np.sort(rng.choice(len(valid), 3000, replace=False))
-        emb = network.embed(w, arch, np.stack([
-            normalise(resample(valid.segment(s), arch.n_points,
-                               np.random.default_rng([0, int(s)])), arch.norm_scale)[0]
-            for s in rows]))
-        remap = -np.ones(len(valid), np.int64)
-        remap[rows] = np.arange(len(rows))
-        keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
-        metrics = retrieval_metrics(emb, valid.frame[rows], remap[vpairs[keep]],
-                                    world=valid.world_id[rows])
-        log["validation"] = {k: v for k, v in metrics.items() if k != "roc"}
-        log["validation_roc"] = metrics["roc"]
+        sets = {"validation": valid_set, **(extra_valid or {})}
+        for name, make in sets.items():
+            valid = make()
+            metrics = _held_out(w, arch, valid, np.random.default_rng(0))
+            entry = {k: v for k, v in metrics.items() if k != "roc"}
+            entry["segments"] = len(valid)
+            entry["objects_with_pairs"] = PairSampler(true_pairs(valid), valid).objects
+            loose = _held_out(w, arch, valid, np.random.default_rng(0),
+                              ignore_same_object=True)
+            entry["same_object_ignored"] = {k: v for k, v in loose.items() if k != "roc"}
+            if name == "validation":
+                log["validation"] = entry
+                log["validation_roc"] = metrics["roc"]
+            else:
+                log.setdefault("validation_extra", {})[name] = entry
         log["sha256"] = network.sha256_of(out)
         log["minutes"] = round((time.time() - start) / 60, 1)
         (work / "validation.json").write_text(json.dumps(log, indent=2))
