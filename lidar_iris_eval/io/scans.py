@@ -62,9 +62,13 @@ def clean_points(
             labels_source or source,
             f"{len(labels)} labels but {len(points)} points in {source}; counts must be equal",
         )
-    xyz = points[:, :3]
-    finite = np.isfinite(xyz).all(axis=1)
-    n_bad = int(len(finite) - np.count_nonzero(finite))
+    xyz = np.ascontiguousarray(points[:, :3])
+    # one pass over the contiguous copy (fast); the per-point mask (3x slower on a
+    # full-resolution scan, once per descriptor) only when something is not finite
+    n_bad = 0
+    if not np.isfinite(xyz).all():
+        finite = np.isfinite(xyz).all(axis=1)
+        n_bad = int(len(finite) - np.count_nonzero(finite))
     if n_bad:
         warn(source, f"dropped {n_bad} of {len(finite)} points with NaN or inf coordinates")
         xyz = xyz[finite]
@@ -78,7 +82,7 @@ def clean_points(
         intensity = np.ascontiguousarray(intensity, dtype=np.float32)
     if labels is not None:
         labels = np.ascontiguousarray(labels, dtype=np.uint32)
-    return Scan(np.ascontiguousarray(xyz), intensity, labels)
+    return Scan(xyz, intensity, labels)
 
 
 def read_labels(path: str | Path) -> np.ndarray:
