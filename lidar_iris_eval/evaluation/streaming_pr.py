@@ -40,8 +40,9 @@ import numpy as np
 from lidar_iris_eval.evaluation.metrics import PRCurve
 from lidar_iris_eval.matching.blocks import Affinity
 
-#: queries per pairwise call when computing the positive distances first
-POSITIVE_QUERY_CHUNK = 64
+#: queries per pairwise call when computing the positive distances first (KITTI-00 scale,
+#: LiDAR Iris: 64 queries a call evaluated 383k distances in 4.5 s, 8 evaluated 73k in 1.4 s)
+POSITIVE_QUERY_CHUNK = 8
 
 
 class StreamingPR:
