@@ -68,15 +68,12 @@ def build_affinity(run: Run) -> Figure | None:
     """
     matrices, steps = {}, {}
     for name in style.in_method_order(run.descriptors(2)):
-        full = run.affinity(name, required=False)
-        decimated = None if full is not None else run.affinity_decimated(name, required=False)
-        if full is not None:
-            matrices[name], steps[name] = full, 1
-        elif decimated is not None:
-            matrices[name], steps[name] = decimated
-        else:
+        found = run.affinity_for_figures(name)
+        if found is None:
             warn(run.path / "protocol2" / name,
                  "no affinity.npy or affinity_decimated.npy; left out of affinity figure")
+        else:
+            matrices[name], steps[name] = found
     if not matrices:
         return None
     step = max(steps.values())  # one run has one frame count, so one decimation step

@@ -227,11 +227,10 @@ def affinity_images(run: Run, max_px: int = MAX_AFFINITY_PX) -> str:
     figures = []
     for name in run.descriptors(2):
         row = run.row(2, name)
-        matrix, step = run.affinity(name, required=False), 1
-        if matrix is None:  # above 8192 frames only every k-th frame is kept
-            matrix, step = run.affinity_decimated(name, required=False) or (None, 1)
-        if matrix is None:
+        found = run.affinity_for_figures(name)  # above 8192 frames: every k-th frame
+        if found is None:
             continue
+        matrix, step = found
         data = base64.b64encode(affinity_png(matrix, max_px)).decode("ascii")
         decimated = f" (decimated by {step})" if step > 1 else ""
         caption = html.escape(f"{name}/{row.get('preset')}{decimated}")

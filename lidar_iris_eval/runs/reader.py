@@ -117,14 +117,7 @@ class Run:
         relative = f"protocol2/{descriptor}/affinity.npy"
         if not required and not self.has(relative):
             return None
-        matrix = self._npy(relative, mmap=True)
-        n = self.n_frames if self.has("positions.npy") else None
-        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or \
-                (n is not None and matrix.shape[0] != n):
-            expected = f"({n}, {n})" if n is not None else "a square matrix"
-            raise LirisError(self.path / relative,
-                             f"affinity has shape {matrix.shape}, expected {expected}")
-        return matrix
+        return self._square_npy(relative, step=1, what="affinity")
 
     def affinity_decimated(self, descriptor: str,
                            required: bool = True) -> tuple[np.ndarray, int] | None:
@@ -139,7 +132,6 @@ class Run:
         relative = f"protocol2/{descriptor}/affinity_decimated.npy"
         if not required and not self.has(relative):
             return None
-        matrix = self._npy(relative, mmap=True)
         note = str(self.row(2, descriptor).get("affinity_stored") or "")
         found = re.search(r"every (\d+)", note)
         if found is None or int(found.group(1)) < 1:
@@ -147,14 +139,20 @@ class Run:
                              f"{descriptor}: affinity_stored does not give the frame step of "
                              f"{relative} (got {note!r})")
         step = int(found.group(1))
-        side = math.ceil(self.n_frames / step) if self.has("positions.npy") else None
-        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or \
-                (side is not None and matrix.shape[0] != side):
-            expected = f"({side}, {side})" if side is not None else "a square matrix"
-            raise LirisError(self.path / relative,
-                             f"decimated affinity has shape {matrix.shape}, expected {expected} "
-                             f"(every {step}th frame)")
+        matrix = self._square_npy(relative, step, "decimated affinity",
+                                  f" (every {step}th frame)")
         return matrix, step
+
+    def affinity_for_figures(self, descriptor: str) -> tuple[np.ndarray, int] | None:
+        """The affinity a figure can draw, with its frame step, or None when the run has none.
+
+        ``(affinity.npy, 1)`` when the full matrix was kept, else
+        ``(affinity_decimated.npy, k)`` (runs above 8192 frames), else None.
+        """
+        full = self.affinity(descriptor, required=False)
+        if full is not None:
+            return full, 1
+        return self.affinity_decimated(descriptor, required=False)
 
     # ---- trajectory and ground truth --------------------------------------------------
     def positions(self) -> np.ndarray:
@@ -244,6 +242,20 @@ class Run:
                 raise LirisError(target, f"missing column(s) {', '.join(missing)}")
             self._cache[relative] = table
         return self._cache[relative]
+
+    def _square_npy(self, relative: str, step: int, what: str, note: str = "") -> np.ndarray:
+        """A memory-mapped square matrix over every ``step``-th frame of the run.
+
+        Its side must be ``ceil(N / step)`` when ``positions.npy`` gives N.
+        """
+        matrix = self._npy(relative, mmap=True)
+        side = math.ceil(self.n_frames / step) if self.has("positions.npy") else None
+        if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or \
+                (side is not None and matrix.shape[0] != side):
+            expected = f"({side}, {side})" if side is not None else "a square matrix"
+            raise LirisError(self.path / relative,
+                             f"{what} has shape {matrix.shape}, expected {expected}{note}")
+        return matrix
 
     def _npy(self, relative: str, mmap: bool = False) -> np.ndarray:
         target = self.path / relative
