@@ -65,11 +65,9 @@ def clean_points(
     xyz = np.ascontiguousarray(points[:, :3])
     # one pass over the contiguous copy (fast); the per-point mask (3x slower on a
     # full-resolution scan, once per descriptor) only when something is not finite
-    n_bad = 0
     if not np.isfinite(xyz).all():
         finite = np.isfinite(xyz).all(axis=1)
         n_bad = int(len(finite) - np.count_nonzero(finite))
-    if n_bad:
         warn(source, f"dropped {n_bad} of {len(finite)} points with NaN or inf coordinates")
         xyz = xyz[finite]
         if intensity is not None:
