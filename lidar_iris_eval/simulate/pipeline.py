@@ -94,9 +94,9 @@ def _grid_lines(xs: np.ndarray, ys: np.ndarray, extend: float) -> list[np.ndarra
 def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None) -> Scenario:
     """Generate the world and the trajectory described by ``cfg``.
 
-    ``world_params`` replaces the default :class:`WorldParams` (only ESM's training
-    data does this, e.g. for ``shape_variety``; sequences written by ``liris
-    simulate`` always use the defaults).
+    ``world_params`` replaces the default :class:`WorldParams` (only in-memory
+    training data of learned methods does this, e.g. for ``shape_variety``;
+    sequences written by ``liris simulate`` always use the defaults).
     """
     wp = world_params if world_params is not None else WorldParams()
     sensor = get_sensor(cfg.sensor, cfg.azimuth_steps)

@@ -53,7 +53,8 @@ class WorldParams:
     #: opt-in (off for every preset and sequence): parked cars drawn from five body types
     #: (hatchback, sedan, estate, SUV, van) and trees with multi-lobed or conifer crowns.
     #: Off, no extra random number is drawn, so the default worlds stay byte-identical.
-    #: ESM's training worlds turn it on (objects of one class must differ in shape).
+    #: Training data of learned segment descriptors turns it on (objects of one class must
+    #: differ in shape for the same-object task to be learnable).
     shape_variety: bool = False
 
 
