@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import warnings
 
+import numpy as np
 import pytest
 
 from tests.conftest import run_cli
@@ -131,3 +132,13 @@ def test_shift_window_ignored_by_default_search_warns(sim, capsys):
     with warnings.catch_warnings():  # the search that uses it: no warning
         warnings.simplefilter("error", LirisWarning)
         get_descriptor("lidar-iris", shift_window=180, shift_search="phase")
+
+
+def test_no_yaw_means_every_rotation_entry_is_empty():
+    """Real-data finding: M2DP/ESF rows wrote T02, T12, T20, T21 as 0.0 (the doc says empty)."""
+    from lidar_iris_eval.descriptors.base import yaw_to_pose
+
+    T = yaw_to_pose(np.array([np.nan, 90.0]))
+    assert np.isnan(T[0, :3, :]).all()
+    np.testing.assert_allclose(T[1, :3, :3], [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-12)
+    assert np.isnan(T[1, :3, 3]).all() and T[1, 3, 3] == 1.0
