@@ -193,7 +193,7 @@ def test_protocol2_counts_equal_liris_gt(simulated, tmp_path, capsys, extra):
 def test_failed_run_leaves_no_folder_and_keeps_the_old_one(seq_dir, tmp_path, capsys,
                                                            monkeypatch):
     from lidar_iris_eval.errors import LirisError
-    from lidar_iris_eval.evaluation import evaluate as evaluate_module
+    from lidar_iris_eval.runs import writer as evaluate_module
 
     def boom(*args, **kwargs):
         raise LirisError("disk", "full")
@@ -212,7 +212,8 @@ def test_failed_run_leaves_no_folder_and_keeps_the_old_one(seq_dir, tmp_path, ca
 
 
 def test_library_evaluate_returns_what_the_cli_writes(seq_dir, tmp_path, capsys):
-    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate, write_run
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate
+    from lidar_iris_eval.runs.writer import write_run
 
     assert run_cli(eval_args(seq_dir, tmp_path), capsys)[0] == 0
     written = json.loads((tmp_path / "run" / "metrics.json").read_text())["results"]

@@ -8,7 +8,7 @@ import pytest
 from conftest import assert_one_line_error, run_cli
 from synthetic_loop import loop_sequence
 
-from lidar_iris_eval.engine.plan import read_plan
+from lidar_iris_eval.runs.plan import read_plan
 
 
 @pytest.fixture(scope="module")

@@ -18,10 +18,10 @@ from lidar_iris_eval import cache as cache_module
 from lidar_iris_eval.cache import DescriptorCache
 from lidar_iris_eval.descriptors import _REGISTRY
 from lidar_iris_eval.errors import LirisWarning
-from lidar_iris_eval.evaluation.report import RunWriter, default_run_dir
 from lidar_iris_eval.extract import extract
 from lidar_iris_eval.io import open_sequence
 from lidar_iris_eval.io.sequence import full_scan_hashing
+from lidar_iris_eval.runs.writer import RunWriter, default_run_dir
 
 TESTS = Path(__file__).resolve().parent
 

@@ -26,8 +26,8 @@ from lidar_iris_eval.cli.output import (
     write_output_file,
 )
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.evaluation.report import json_ready
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
+from lidar_iris_eval.runs.writer import json_ready
 
 DEFAULT_FRAMES = 4541
 #: azimuth steps of a full-resolution simulated HDL-64E scan (~120k points, like KITTI)

@@ -27,12 +27,11 @@ from lidar_iris_eval.evaluation.evaluate import (
     evaluate,
     export_loops,
     loop_export_paths,
-    write_run,
 )
-from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir, json_ready
 from lidar_iris_eval.executor import check_scheduler, open_executor
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 from lidar_iris_eval.runs.table import render_table
+from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, json_ready, write_run
 from lidar_iris_eval.sensors import resolve_sensor
 
 #: library keywords (Settings, evaluate) -> the flags that set them, for error messages
@@ -68,7 +67,7 @@ register_flags({
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json instead of a table.")
 @click.option("--plan", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="YAML list of sequences x descriptors x protocols, all evaluated into one "
-                   "run folder with a summary table (see lidar_iris_eval/engine/plan.py).")
+                   "run folder with a summary table (see lidar_iris_eval/runs/plan.py).")
 @click.option("--scheduler", default="processes", show_default=True,
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
@@ -140,7 +139,7 @@ def _evaluate_many(sequences, plan, protocols, descriptor_text, preset, params, 
                    as_json, reader_options, scheduler) -> None:
     """SEQUENCE... or --plan: :func:`lidar_iris_eval.cli.eval_many.evaluate_many`."""
     from lidar_iris_eval.cli.eval_many import evaluate_many
-    from lidar_iris_eval.engine.plan import read_plan, runs_from_sequences
+    from lidar_iris_eval.runs.plan import read_plan, runs_from_sequences
 
     if plan is not None and sequences:
         raise LirisError("--plan", "give either sequences or --plan FILE, not both")

@@ -1,8 +1,8 @@
 """``liris eval`` on several sequences (or a ``--plan`` file): one folder, one summary.
 
-The plan format and the summary are described in :mod:`lidar_iris_eval.engine.plan`.
+The plan format and the summary are described in :mod:`lidar_iris_eval.runs.plan`.
 Each sequence gets an ordinary run folder inside the parent (written by
-:func:`~lidar_iris_eval.evaluation.evaluate.write_run`), so ``liris show`` and
+:func:`~lidar_iris_eval.runs.writer.write_run`), so ``liris show`` and
 ``liris plot`` read them as usual. The parent is assembled in a temporary
 folder and renamed into place at the end; an existing folder is replaced
 only with ``--overwrite``.
@@ -17,7 +17,9 @@ from pathlib import Path
 import click
 
 from lidar_iris_eval.cli.output import format_table
-from lidar_iris_eval.engine.plan import (
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.executor import check_scheduler, open_executor
+from lidar_iris_eval.runs.plan import (
     SUMMARY_COLUMNS,
     PlannedRun,
     run_folder_names,
@@ -26,8 +28,6 @@ from lidar_iris_eval.engine.plan import (
     summary_rows,
     write_text_atomic,
 )
-from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.executor import check_scheduler, open_executor
 
 
 def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int, quiet: bool,
@@ -36,8 +36,8 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
     """Evaluate every planned run under one scheduler; returns the parent folder."""
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import extract_all
-    from lidar_iris_eval.evaluation.evaluate import check_request, evaluate, write_run
-    from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir
+    from lidar_iris_eval.evaluation.evaluate import check_request, evaluate
+    from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, write_run
 
     check_scheduler(scheduler)
     # everything is validated before any work: paths, descriptors, protocols, inputs

@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import click
 
-from lidar_iris_eval.cache import umask
+from lidar_iris_eval.atomic import write_atomic
 from lidar_iris_eval.errors import LirisError, check_writable_dir, file_in_the_way
 
 
@@ -70,14 +68,4 @@ def check_output_file(path: Path, flag: str) -> Path:
 
 def write_output_file(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (temporary file + rename), umask permissions."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.tmp-")
-    try:
-        os.fchmod(fd, 0o666 & ~umask())
-        with os.fdopen(fd, "w") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, text)

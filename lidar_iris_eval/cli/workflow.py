@@ -20,6 +20,7 @@ import functools
 import click
 from click.core import ParameterSource
 
+from lidar_iris_eval.atomic import atomic_path
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.runs.table import FORMATS
 
@@ -148,8 +149,6 @@ def export_npy(dbs, folder) -> dict[str, str]:
     Multi-part (structured) or variable-size descriptors have no such form
     and are reported as skipped. Existing files are never replaced.
     """
-    import os
-    import tempfile
     from pathlib import Path
 
     import numpy as np
@@ -168,9 +167,7 @@ def export_npy(dbs, folder) -> dict[str, str]:
         target = folder / f"{db.descriptor}.npy"
         if target.exists():
             raise LirisError(target, "exists; remove it or choose another --export-npy folder")
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".npy", dir=folder)
-        with os.fdopen(fd, "wb") as handle:
+        with atomic_path(target) as tmp, open(tmp, "wb") as handle:
             np.save(handle, array, allow_pickle=False)
-        os.replace(tmp, target)
         written[db.descriptor] = str(target)
     return written

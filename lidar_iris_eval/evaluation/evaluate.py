@@ -2,7 +2,8 @@
 
 ::
 
-    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate, write_run
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate
+    from lidar_iris_eval.runs.writer import write_run
 
     run = evaluate("dataset/sequences/00", ["lidar-iris", "scan-context:reference"],
                    protocols=(1, 2), settings=Settings(exclude="reference"),
@@ -14,7 +15,8 @@
 :func:`evaluate` extracts (or loads) descriptors, runs the requested
 protocols under frozen :class:`Settings`, and returns an :class:`Evaluation`
 holding every result object, the metric rows, the header (conventions) and
-the config. It writes nothing; :func:`write_run` lays a run folder out and
+the config. It writes nothing; :func:`lidar_iris_eval.runs.writer.write_run` lays a run
+folder out and
 :func:`export_loops` writes accepted loops as pose-graph edges.
 """
 
@@ -41,16 +43,9 @@ from lidar_iris_eval.evaluation import metrics as m
 from lidar_iris_eval.evaluation import poses as pose_tools
 from lidar_iris_eval.evaluation.conventions import convention_header
 from lidar_iris_eval.evaluation.ground_truth import database_limits
+from lidar_iris_eval.evaluation.metrics import SUMMARY_KEYS
 from lidar_iris_eval.evaluation.protocol1 import REVERSE_DEGREES, Protocol1Result, protocol1
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result, protocol2, protocols_1_and_2
-from lidar_iris_eval.evaluation.report import (
-    SUMMARY_KEYS,
-    RunWriter,
-    write_metrics,
-    write_protocol1,
-    write_protocol2,
-    write_timing,
-)
 from lidar_iris_eval.evaluation.settings import EXCLUDE_PRESETS, Settings
 from lidar_iris_eval.extract import DescriptorDB, extract
 
@@ -61,7 +56,6 @@ __all__ = [
     "Settings",
     "evaluate",
     "export_loops",
-    "write_run",
 ]
 
 
@@ -341,31 +335,6 @@ def _rows(desc, db, p1, p2, settings) -> list[dict]:
             **{k: p2.metrics[k] for k in ("affinity_stored", "pr_counting") if k in p2.metrics},
         })
     return rows
-
-
-def write_run(evaluation: Evaluation, out: str | os.PathLike, overwrite: bool = False,
-              **config_extra) -> Path:
-    """Write the run folder (docs/results-format.md) atomically; returns its path."""
-    out = Path(out)
-    config = evaluation.config(**config_extra)
-    seq = evaluation.sequence
-    poses = seq.camera_poses if evaluation.pose_frame == "camera" else seq.poses
-    with RunWriter(out, overwrite) as run:
-        for r in evaluation.results:
-            if r.protocol1 is not None:
-                write_protocol1(run, r.descriptor.name, r.protocol1)
-            if r.protocol2 is not None:
-                write_protocol2(run, r.descriptor.name, r.protocol2)
-            write_timing(run, r.descriptor.name, r.db.extract_s, r.db.read_s)
-        run.write_yaml("config.yaml", config)
-        write_metrics(run, evaluation.header(config), evaluation.rows)
-        run.write_npy("poses.npy", np.asarray(poses, dtype=np.float64))
-        run.write_npy("positions.npy", seq.positions(evaluation.pose_frame).astype(np.float64))
-        times = getattr(seq, "times", None)
-        if evaluation.settings.exclude_seconds is not None and times is not None:
-            # a window in seconds: the reader rebuilds the run's queries from these
-            run.write_npy("times.npy", np.asarray(times, dtype=np.float64))
-    return out
 
 
 def loop_export_paths(path: str | os.PathLike, names: Sequence[str]) -> list[Path]:

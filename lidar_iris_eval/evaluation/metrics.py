@@ -81,6 +81,10 @@ class PRCurve:
 _FIELDS = ("threshold", "precision", "recall", "tp", "fp", "fn")
 
 
+#: the metric columns every result row carries, in ``metrics.csv`` order
+SUMMARY_KEYS = ("ap", "f1_max", "f1_threshold", "r100p", "ep")
+
+
 def pr_curve(
     distances: np.ndarray,
     correct: np.ndarray,

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from lidar_iris_eval.atomic import atomic_path
 from lidar_iris_eval.runs.reader import Run
 from lidar_iris_eval.runs.table import table_row
 
@@ -168,15 +168,9 @@ def plot_pr_overlay(runs: Sequence[Run], out: str | os.PathLike) -> Path:
         ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=out.suffix or ".png",
-                               dir=out.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=120)
-        os.replace(tmp, out)
+        with atomic_path(out, suffix=out.suffix or ".png") as tmp:
+            fig.savefig(tmp, dpi=120)
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return out

@@ -1,4 +1,7 @@
-"""Writing a run directory (the format is specified in docs/results-format.md).
+"""Writing a run folder (the format is specified in docs/results-format.md).
+
+``runs/`` owns the run folder: this writer, the reader (:mod:`.reader`),
+replay, comparison and multi-run plans (:mod:`.plan`).
 
 A run is assembled in a hidden temporary folder next to the target and moved
 into place with one rename when everything is written, so a reader (or
@@ -31,13 +34,11 @@ import yaml
 
 from lidar_iris_eval.cache import umask
 from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error
+from lidar_iris_eval.evaluation.evaluate import Evaluation
 from lidar_iris_eval.evaluation.metrics import PRCurve, reduce_curve
 from lidar_iris_eval.evaluation.protocol1 import Protocol1Result
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result
 from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
-
-#: the metric columns every result row carries, in ``metrics.csv`` order
-SUMMARY_KEYS = ("ap", "f1_max", "f1_threshold", "r100p", "ep")
 
 
 def check_run_dir(out: str | os.PathLike, overwrite: bool) -> Path:
@@ -210,3 +211,28 @@ def json_ready(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+def write_run(evaluation: Evaluation, out: str | os.PathLike, overwrite: bool = False,
+              **config_extra) -> Path:
+    """Write the run folder (docs/results-format.md) atomically; returns its path."""
+    out = Path(out)
+    config = evaluation.config(**config_extra)
+    seq = evaluation.sequence
+    poses = seq.camera_poses if evaluation.pose_frame == "camera" else seq.poses
+    with RunWriter(out, overwrite) as run:
+        for r in evaluation.results:
+            if r.protocol1 is not None:
+                write_protocol1(run, r.descriptor.name, r.protocol1)
+            if r.protocol2 is not None:
+                write_protocol2(run, r.descriptor.name, r.protocol2)
+            write_timing(run, r.descriptor.name, r.db.extract_s, r.db.read_s)
+        run.write_yaml("config.yaml", config)
+        write_metrics(run, evaluation.header(config), evaluation.rows)
+        run.write_npy("poses.npy", np.asarray(poses, dtype=np.float64))
+        run.write_npy("positions.npy", seq.positions(evaluation.pose_frame).astype(np.float64))
+        times = getattr(seq, "times", None)
+        if evaluation.settings.exclude_seconds is not None and times is not None:
+            # a window in seconds: the reader rebuilds the run's queries from these
+            run.write_npy("times.npy", np.asarray(times, dtype=np.float64))
+    return out
