@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 import pytest
 
-from tests.conftest import run_cli
+from conftest import run_cli
 
 pytest.importorskip("lidar_iris_eval.simulate")
 
