@@ -483,3 +483,35 @@ def test_nclt_ground_truth_searched_in_the_documented_places(tmp_path):
     rows(tmp_path / "gt.csv", [["1", 0, 0, 0, 0, 0, 0]])
     with pytest.raises(LirisError, match="no scan has a pose"):
         open_sequence(path, poses=tmp_path / "gt.csv")
+
+
+# --- processes and replays ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["helipr-Aeva", "nclt-hits"])
+def test_sequences_pickle_for_worker_processes(tmp_path, name):
+    import pickle
+
+    path, _, _ = MAKERS[name](tmp_path)
+    seq = _quiet_open(path)
+    back = pickle.loads(pickle.dumps(seq))
+    assert back.fingerprint() == seq.fingerprint()
+    np.testing.assert_array_equal(back.scan(2).points, seq.scan(2).points)
+
+
+def test_forced_helipr_sensor_folder_is_recorded_and_replayed(tmp_path, capsys):
+    import yaml
+
+    path, _, _ = _helipr("Aeva")(tmp_path)
+    args = ["eval", path, "--dataset", "helipr", "-d", "scan-context", "--protocol", "1",
+            "--exclude", "2", "--pose-frame", "lidar", "--cache-dir", tmp_path / "c", "-q"]
+    code, _, err = run_cli([*args, "--out", tmp_path / "run"], capsys)
+    assert code == 0, err
+    config = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
+    assert config["sequence"]["reader_options"]["dataset"] == "helipr"
+    code, _, err = run_cli(["eval", "--config", tmp_path / "run", "--out", tmp_path / "again",
+                            "-q"], capsys)
+    assert code == 0, err
+    first, again = (json.loads((tmp_path / r / "metrics.json").read_text())["results"]
+                    for r in ("run", "again"))
+    assert first[0]["ap"] == again[0]["ap"] == pytest.approx(1.0)

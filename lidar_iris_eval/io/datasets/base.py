@@ -196,7 +196,10 @@ def read_stamp_column(path: Path, what: str) -> np.ndarray:
         if not stamps and not _numeric(head):
             continue  # header row
         try:
-            stamps.append(int(head.split(".")[0]) if "." in head else int(head))
+            if "e" in head.lower():  # scientific notation: exact only to float precision
+                stamps.append(int(float(head)))
+            else:
+                stamps.append(int(head.split(".")[0]) if "." in head else int(head))
         except ValueError:
             raise LirisError(f"{path}:{number}", f"malformed {what} line (stamp)") from None
     return np.asarray(stamps, dtype=np.int64)
