@@ -15,8 +15,8 @@ def test_help_lists_subcommands(capsys):
     code, out, _ = run_cli(["--help"], capsys)
     assert code == 0
     listed = {line.split()[0] for line in out.split("Commands:")[1].splitlines() if line.strip()}
-    assert listed == {"bench", "compare", "eval", "extract", "gt", "plot", "report", "show",
-                      "simulate"}
+    assert listed == {"bench", "compare", "datasets", "eval", "extract", "gt", "plot", "report",
+                      "show", "simulate"}
 
 
 @pytest.mark.parametrize(("exclude", "revisits"), [("300", 791), ("reference", 791), ("30", 816)])

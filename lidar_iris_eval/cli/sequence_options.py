@@ -25,12 +25,19 @@ _KEYWORDS = {
     "min_distance": "min_distance",
     "tolerance": "tolerance",
     "stamps": "stamps",
+    "dataset": "dataset",
+    "scene": "scene",
 }
 
 
 def sequence_options(func):
-    """Reader options: pose format/frame, bag topics, time matching, frame selection."""
+    """Reader options: dataset, pose format/frame, bag topics, time matching, frame selection."""
 
+    @click.option("--dataset", default=None, metavar="NAME",
+                  help="Read SEQUENCE as this dataset (liris datasets lists them); "
+                       "default: detected from the folder.")
+    @click.option("--scene", default=None, metavar="NAME",
+                  help="nuScenes: the scene to read (e.g. scene-0061).")
     @click.option("--pose-format", type=click.Choice(["auto", "kitti", "tum"]), default=None,
                   help="Pose file format (default: detected from the first line).")
     @click.option("--lidar-frame-poses", is_flag=True, default=None,

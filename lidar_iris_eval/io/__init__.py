@@ -1,6 +1,7 @@
 """Sequence readers: one small module per on-disk format.
 
-:func:`open_sequence` picks the reader from what is on disk.
+:func:`open_sequence` picks the reader from what is on disk (or from
+``dataset=``) through the registry in :mod:`lidar_iris_eval.io.datasets`.
 """
 
 from __future__ import annotations
@@ -8,7 +9,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.io.kitti import is_kitti_layout, open_kitti
 from lidar_iris_eval.io.scans import Scan
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -19,15 +19,18 @@ def open_sequence(
     calib: str | Path | None = None,
     **options,
 ) -> Sequence:
-    """Open a sequence from a KITTI layout, a folder of scans, or a ROS bag.
+    """Open a sequence of a registered dataset, a KITTI layout, a folder of scans or a ROS bag.
 
     Parameters
     ----------
-    path : a KITTI sequence folder (with ``velodyne/``), a folder of
-        ``.bin``/``.npy``/``.pcd`` scans, or a ROS bag.
+    path : a dataset folder as ``liris datasets`` lists (e.g. a MulRan
+        sequence, ``<seq>/LiDAR/Aeva`` of HeLiPR), a KITTI sequence folder
+        (with ``velodyne/``), a folder of ``.bin``/``.npy``/``.pcd`` scans, or a ROS bag.
     poses, calib : pose and calibration files overriding the ones found.
-    options : format-specific options (e.g. ``pose_format``, ``lidar_frame``
-        for scan folders; ``topic`` for bags).
+    options : ``dataset`` forces a registered reader (else it is detected,
+        see :mod:`lidar_iris_eval.io.datasets`); format-specific options
+        (e.g. ``pose_format``, ``lidar_frame`` for scan folders; ``topic``
+        for bags; ``tolerance`` for every time-matched reader).
     """
     path = Path(path)
     if not path.exists():
@@ -37,29 +40,10 @@ def open_sequence(
     chosen = {k: options.pop(k) for k in selection.SELECTION_KEYS if k in options}
     if chosen:  # frames, every, min_distance: the same for every format
         return selection.select_frames(open_sequence(path, poses, calib, **options), **chosen)
-    from lidar_iris_eval.io.objects import is_objects_layout, open_objects
+    from lidar_iris_eval.io.datasets import find_dataset
 
-    if is_objects_layout(path):  # the GOSMatch authors' bow.txt + centroids/
-        return open_objects(path, poses=poses, calib=calib, **options)
-    if is_kitti_layout(path):
-        if selection.needs_folder_reader(poses, options):  # TUM poses, times, pose options
-            return selection.open_kitti_with_options(path, poses, calib, **options)
-        return open_kitti(path, poses=poses, calib=calib)
-    if _is_rosbag(path):
-        from lidar_iris_eval.io.rosbag import open_rosbag
-
-        return open_rosbag(path, poses=poses, **options)
-    if path.is_dir():
-        from lidar_iris_eval.io.folder import open_folder
-
-        return open_folder(path, poses=poses, calib=calib, **options)
-    raise LirisError(path, "not a sequence: expected a folder of scans or a ROS bag")
-
-
-def _is_rosbag(path: Path) -> bool:
-    if path.is_file():
-        return path.suffix in (".bag", ".db3", ".mcap")
-    return (path / "metadata.yaml").is_file()
+    spec = find_dataset(path, options.pop("dataset", None))
+    return spec.open(path, poses=poses, calib=calib, **options)
 
 
 __all__ = ["Scan", "Sequence", "open_sequence"]

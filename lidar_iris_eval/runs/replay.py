@@ -31,6 +31,7 @@ READER_PARAMS = {
     "lidar_frame": "lidar_frame_poses", "times": "times_path", "topic": "topic",
     "pose_topic": "pose_topic", "stamps": "stamps", "tolerance": "tolerance",
     "frames": "frames", "every": "every", "min_distance": "min_distance",
+    "dataset": "dataset", "scene": "scene",
 }
 
 
