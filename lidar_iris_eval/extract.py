@@ -45,7 +45,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lidar_iris_eval import __version__
-from lidar_iris_eval.cache import CacheKey, DescriptorCache
+from lidar_iris_eval.cache import CacheKey, DescriptorCache, input_fingerprint
 from lidar_iris_eval.config import params_dict
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.features import RaggedFeatures
@@ -146,6 +146,7 @@ def cache_key(seq, descriptor: Descriptor, fingerprint: str | None = None) -> Ca
         version=f"{__version__}+numpy-{np.__version__}",
         n_scans=len(seq),
         code=descriptor_code_hash(descriptor),
+        inputs=input_fingerprint(seq, descriptor.inputs),
     )
 
 
@@ -347,6 +348,7 @@ def _compute_range(seq, descriptor, a: int, b: int, tick=None):
     """
     outputs, extract_s, read_s = [], np.empty(b - a), np.empty(b - a)
     wants_scan = descriptor.wants_scan()
+    i = a
     try:
         for k, i in enumerate(range(a, b)):
             t0 = time.perf_counter()
@@ -368,7 +370,11 @@ def _compute_range(seq, descriptor, a: int, b: int, tick=None):
             if tick is not None:
                 tick(1)
     except LirisError as err:
-        return ("error", err.source, err.problem)
+        return ("error", scan_source(seq, i, err.source), err.problem)
+    except MemoryError:
+        return ("error", f"{descriptor.name} parameters",
+                f"not enough memory to compute the descriptor of one scan "
+                f"({scan_source(seq, i, None)}); check --param / the preset's sizes")
     times = {"extract_s": extract_s, "read_s": read_s}
     if outputs and isinstance(outputs[0], dict):
         if not all(isinstance(o, dict) for o in outputs):
@@ -377,6 +383,16 @@ def _compute_range(seq, descriptor, a: int, b: int, tick=None):
         features = RaggedFeatures.from_list(outputs, f"{descriptor.name}.compute")
         return {**features.to_arrays(), **times}
     return {"descriptors": np.stack(outputs), **times}
+
+
+def scan_source(seq, index: int, source: str | None) -> str | None:
+    """A descriptor's complaint about its ``points`` named by the scan it came from."""
+    if source not in (None, "points"):
+        return source
+    paths = getattr(seq, "scan_paths", None)
+    if paths is not None and index < len(paths):
+        return str(paths[index])
+    return f"{getattr(seq, 'name', 'sequence')} scan {index}"
 
 
 #: descriptors (class and parameters) already run once in this process

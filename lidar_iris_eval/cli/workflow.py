@@ -153,16 +153,18 @@ def export_npy(dbs, folder) -> dict[str, str]:
     Multi-part (structured) or variable-size descriptors have no such form
     and are reported as skipped. Existing files are never replaced.
     """
-    import os
-    import tempfile
     from pathlib import Path
 
     import numpy as np
 
-    from lidar_iris_eval.errors import warn
+    from lidar_iris_eval.atomic import atomic_write
+    from lidar_iris_eval.errors import os_error, warn
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise os_error(err, folder, "cannot create the --export-npy folder") from None
     written = {}
     for db in dbs:
         array = db.descriptors
@@ -173,9 +175,7 @@ def export_npy(dbs, folder) -> dict[str, str]:
         target = folder / f"{db.descriptor}.npy"
         if target.exists():
             raise LirisError(target, "exists; remove it or choose another --export-npy folder")
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".npy", dir=folder)
-        with os.fdopen(fd, "wb") as handle:
-            np.save(handle, array, allow_pickle=False)
-        os.replace(tmp, target)
+        atomic_write(target, lambda handle, a=array: np.save(handle, a, allow_pickle=False),
+                     what="exported descriptors")
         written[db.descriptor] = str(target)
     return written

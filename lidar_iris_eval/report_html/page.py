@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, os_error
 from lidar_iris_eval.runs import Run, conventions_lines, load_run
 from lidar_iris_eval.runs.table import TABLE_COLUMNS, cell, table_row
 
@@ -60,8 +60,12 @@ def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = Non
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; a report is meant to be shared
     try:
-        (tmp / PLOTLY_JS).write_text(plotly.offline.get_plotlyjs(), encoding="utf-8")
-        (tmp / "index.html").write_text(render_page(run, go, max_affinity_px), encoding="utf-8")
+        try:
+            (tmp / PLOTLY_JS).write_text(plotly.offline.get_plotlyjs(), encoding="utf-8")
+            (tmp / "index.html").write_text(render_page(run, go, max_affinity_px),
+                                            encoding="utf-8")
+        except OSError as err:  # name the report, not the folder it was assembled in
+            raise os_error(err, out / "index.html", "cannot write the report") from None
         if out.exists():
             old = out.parent / f".{out.name}.old-{os.getpid()}"
             os.rename(out, old)
