@@ -69,6 +69,9 @@ class DescriptorDB:
     sequence, fingerprint : the sequence name and content fingerprint.
     cache_path : the cache file, or None when no cache was used.
     from_cache : True when nothing was computed in this call.
+    warnings : the warnings that qualify results computed from these descriptors
+        (degenerate descriptors, :mod:`lidar_iris_eval.evaluation.sanity`); the
+        run stores them with each result row.
     """
 
     descriptor: str
@@ -81,6 +84,7 @@ class DescriptorDB:
     fingerprint: str
     cache_path: Path | None
     from_cache: bool
+    warnings: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.descriptors)
@@ -195,8 +199,8 @@ def extract(
     if cache is not None:
         stored = cache.load(key)
         if stored is not None and _complete(stored, len(seq)):
-            _warn_if_degenerate(stored, descriptor, seq)
-            return DescriptorDB(**meta, **_split(stored), from_cache=True)
+            found = _warn_if_degenerate(stored, descriptor, seq)
+            return DescriptorDB(**meta, **_split(stored), from_cache=True, warnings=found)
 
     if cache is not None and not cache.writable(key):
         meta["cache_path"] = None  # someone else's unreadable file: compute, do not store
@@ -221,16 +225,19 @@ def extract(
     arrays = joined.arrays()
     if cache is not None:
         cache.store(key, arrays)
-    _warn_if_degenerate(arrays, descriptor, seq)
-    return DescriptorDB(**meta, **_split(arrays), from_cache=False)
+    found = _warn_if_degenerate(arrays, descriptor, seq)
+    return DescriptorDB(**meta, **_split(arrays), from_cache=False, warnings=found)
 
 
-def _warn_if_degenerate(arrays, descriptor, seq) -> None:
-    """Warn when most descriptors are empty or constant (millimetres, wrong frame)."""
-    from lidar_iris_eval.evaluation.sanity import warn_if_degenerate
+def _warn_if_degenerate(arrays, descriptor, seq) -> tuple[str, ...]:
+    """Warn when most descriptors are empty or constant (millimetres, wrong frame);
+    returns the warnings, which qualify every result of these descriptors."""
+    from lidar_iris_eval.evaluation.sanity import recording_qualifiers, warn_if_degenerate
 
-    warn_if_degenerate(arrays.get("descriptors"), descriptor.name, seq.name,
-                       sample=lambda i: seq[i])
+    with recording_qualifiers() as found:
+        warn_if_degenerate(arrays.get("descriptors"), descriptor.name, seq.name,
+                           sample=lambda i: seq[i])
+    return tuple(entry["warning"] for entry in found)
 
 
 def _complete(arrays: dict[str, np.ndarray], n: int) -> bool:

@@ -280,9 +280,9 @@ def cases() -> list[Case]:
             (dst / "poses.txt").write_text("\n".join(lines) + "\n")
         return setup
 
-    add(Case("pcd random body", ["eval", "P", "-q", "-d", "m2dp", "--protocol", "1"],
+    add(Case("pcd random body", ["eval", "P/scans", "-q", "-d", "m2dp", "--protocol", "1"],
              pcd_seq(rng_bytes(4096, 3)), "error", "000006.pcd"))
-    add(Case("pcd good", ["eval", "P", "-q", "-d", "m2dp", "--protocol", "1"],
+    add(Case("pcd good", ["eval", "P/scans", "-q", "-d", "m2dp", "--protocol", "1"],
              pcd_seq(b""), "ok"))
 
     # labels

@@ -27,7 +27,8 @@ from lidar_iris_eval.io.scans import Scan
 
 
 def labelled_sequence(root: Path, n: int = 8, seed: int = 0, labels: bool = True) -> Path:
-    """A KITTI-layout sequence whose labels say ``class = 50 + i % 3`` (SemanticKITTI building, fence, other-structure), instance = point index."""
+    """A KITTI-layout sequence: labels say ``class = 50 + i % 3`` (SemanticKITTI building,
+    fence, other-structure), instance = point index."""
     rng = np.random.default_rng(seed)
     scans = [random_scan(rng, n_points=50 + 7 * i) for i in range(n)]
     write_kitti_sequence(root, scans, line_poses(np.arange(n) * 10.0))

@@ -16,6 +16,7 @@ from lidar_iris_eval.runs.compare import (
     plot_pr_overlay,
     run_labels,
 )
+from lidar_iris_eval.runs.schema import result_warnings
 
 
 @click.command("compare")
@@ -44,6 +45,9 @@ def command(runs, fmt, plot_out):
     click.echo(render_table(rows, fmt, columns=columns, summarize=False))
     click.echo("")
     click.echo(difference_summary(rows, labels))
+    for run, label in zip(loaded, labels, strict=True):
+        for line in result_warnings(run.rows):  # warnings that qualify a run's numbers
+            click.echo(f"warning ({label}): {line}")
     differences = convention_differences(loaded)
     if differences:
         click.echo("conventions and settings that differ (the numbers are not like for like):")

@@ -13,9 +13,10 @@ Rules:
 * a metric (:data:`NUMBER_KEYS`, or a key with a prefix of
   :data:`NUMBER_PREFIXES`) is a finite number or null (undefined, never 0);
 * ``conventions`` and ``sequence`` are mappings when present;
-* ``warnings`` (the warnings that qualify a result, see
-  :mod:`lidar_iris_eval.evaluation.sanity`) is a list of
-  ``{"descriptor", "sequence", "warning"}`` mappings when present.
+* a result's ``warnings`` (the warnings that qualify its numbers, e.g. a
+  degenerate descriptor, see :mod:`lidar_iris_eval.evaluation.sanity`) is a
+  list of text when present; :func:`result_warnings` lists them for ``show``,
+  ``compare`` and ``report``.
 """
 
 from __future__ import annotations
@@ -56,6 +57,10 @@ def check_metrics(metrics: Any, path: str | Path) -> None:
                                    f"{row['descriptor']!r}")
         if "preset" in row and not isinstance(row["preset"], (str, type(None))):
             raise LirisError(path, f"{where}.preset: expected text, got {row['preset']!r}")
+        warnings = row.get("warnings", [])
+        if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
+            raise LirisError(path, f"{where}.warnings: expected a list of text, got "
+                                   f"{warnings!r}")
         for key, value in row.items():
             if is_number_key(key) and not _number_or_null(value):
                 raise LirisError(path, f"{where}.{key}: expected a number or null, got "
@@ -63,10 +68,17 @@ def check_metrics(metrics: Any, path: str | Path) -> None:
     for key in ("conventions", "sequence"):
         if key in metrics and not isinstance(metrics[key], dict):
             raise LirisError(path, f"{key}: expected a mapping, got {metrics[key]!r}")
-    warnings = metrics.get("warnings", [])
-    if not isinstance(warnings, list) or not all(
-            isinstance(w, dict) and isinstance(w.get("warning"), str) for w in warnings):
-        raise LirisError(path, "warnings: expected a list of {descriptor, sequence, warning}")
+
+
+def result_warnings(rows: list[dict[str, Any]]) -> list[str]:
+    """``"<descriptor>: <warning>"`` once per descriptor and warning, in row order."""
+    out: list[str] = []
+    for row in rows:
+        for text in row.get("warnings") or []:
+            line = f"{row.get('descriptor')}: {text}"
+            if line not in out:
+                out.append(line)
+    return out
 
 
 def _number_or_null(value: Any) -> bool:

@@ -65,7 +65,7 @@ MAX_SEED = 2**63 - 1
 def resolve_config(preset: str | None, overrides: dict) -> SimConfig:
     """The preset's values with ``overrides`` (``None`` values are ignored) on top."""
     if preset is not None and preset not in PRESETS:
-        raise LirisError("--preset", f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+        raise LirisError(f"--world {preset}", f"unknown world; choose from {', '.join(PRESETS)}")
     values = dict(PRESETS.get(preset, {}) if preset else {})
     fields = {f.name for f in dataclasses.fields(SimConfig)}
     for key, value in overrides.items():
