@@ -114,11 +114,11 @@ def test_folder_reader_reads_labels_folder(tmp_path):
     for i in range(3):
         pts = random_scan(rng, 30)
         np.save(folder / f"{i:06d}.npy", pts)
-        np.full(30, 40 + i, "<u4").tofile(folder / "labels" / f"{i:06d}.label")
+        np.full(30, (40, 44, 48)[i], "<u4").tofile(folder / "labels" / f"{i:06d}.label")
     np.savetxt(folder / "poses.txt", line_poses(np.arange(3.0))[:, :3, :4].reshape(3, 12))
     seq = open_folder(folder, lidar_frame=True)
     assert seq.has_labels
-    assert set(seq.scan(2).labels.tolist()) == {42}
+    assert set(seq.scan(2).labels.tolist()) == {48}
     (folder / "labels").rename(tmp_path / "elsewhere")
     assert not open_folder(folder, lidar_frame=True).has_labels
 

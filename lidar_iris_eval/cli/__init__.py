@@ -40,7 +40,11 @@ _default_showwarning = warnings.showwarning
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="liris")
 def cli() -> None:
-    """Evaluate LiDAR loop-closure descriptors (LiDAR Iris, Scan Context, M2DP, ESF)."""
+    """Evaluate LiDAR loop-closure descriptors (LiDAR Iris, Scan Context, M2DP, ESF,
+    GOSMatch, ESM) under protocol 1 (best match) and protocol 2 (all pairs).
+
+    Start with `liris simulate OUT` and `liris eval OUT -d lidar-iris`.
+    """
     warnings.showwarning = _show_warning
 
 

@@ -330,7 +330,8 @@ def _rows(desc, db, p1, p2, settings) -> list[dict]:
             "n_positives": p2.metrics["n_positives"],
             "n_negatives": p2.metrics["n_negatives"],
             "extract_ms_per_scan": db.extract_ms_per_scan,
-            "match_us_per_pair": (aff.seconds / aff.n_evaluations * 1e6 if aff.n_evaluations
+            "match_us_per_pair": (aff.seconds / aff.n_evaluations * 1e6
+                                  if aff.n_evaluations and p2.metrics["n_pairs"]
                                   else float("nan")),  # no pair: no time per pair
             "n_distance_evaluations": aff.n_evaluations,
             "symmetric": aff.symmetric,

@@ -118,13 +118,13 @@ def warn_if_degenerate(descriptors, name: str, sequence: str, sample=None) -> bo
 
     Returns True when it warned.
     """
-    problem = _overflow_or_identical(descriptors)
-    if problem is not None:
-        record_qualifier(name, sequence, f"{problem} {name} descriptor, so its results "
-                                         f"cannot mean much")
-        return True
     constant = constant_rows(descriptors)
     if constant is None or constant.mean() <= DEGENERATE_SHARE:
+        problem = _overflow_or_identical(descriptors)
+        if problem is not None:
+            record_qualifier(name, sequence, f"{problem} {name} descriptor, so its results "
+                                             f"cannot mean much")
+            return True
         return False
     first = int(np.argmax(constant))
     try:

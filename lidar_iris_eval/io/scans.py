@@ -12,7 +12,7 @@ Plausibility rules (each has a name, and its error says it in one line):
 * ``finite-plausible-coordinates``: after non-finite points are dropped, at
   most :data:`IMPLAUSIBLE_FRACTION` of the points may have a coordinate
   farther than :data:`MAX_COORDINATE_M` from the sensor or a non-zero
-  magnitude below :data:`MIN_NONZERO_COORDINATE_M`. Random bytes, a float64
+  magnitude below :data:`MIN_NONZERO_COORDINATE_M` (subnormal). Random bytes, a float64
   file read as float32 and a wrongly decoded PCD body all break this rule
   (their exponents are spread over the whole float32 range); a real scan,
   even in a global UTM frame, does not.
@@ -39,9 +39,9 @@ LABEL_SUFFIX = ".label"
 #: rule ``finite-plausible-coordinates``: no LiDAR sees 1000 km; a sensor-frame (or even
 #: UTM-frame) coordinate beyond this is a decoding error, not a measurement
 MAX_COORDINATE_M = 1.0e6
-#: same rule: a non-zero coordinate below a picometre is a decoding error
-#: (a float64 file read as float32 puts such values in every other column)
-MIN_NONZERO_COORDINATE_M = 1.0e-12
+#: same rule: a subnormal float32 (non-zero, below 1.2e-38) is a decoding error: sensor
+#: arithmetic gives exact zeros or normal numbers (r cos 90 deg is 1e-15, not subnormal)
+MIN_NONZERO_COORDINATE_M = float(np.finfo(np.float32).tiny)
 #: same rule: the share of points allowed to break it (a few stray returns are tolerated)
 IMPLAUSIBLE_FRACTION = 0.01
 
@@ -130,7 +130,7 @@ def check_plausible(xyz: np.ndarray, source: str | Path) -> None:
         raise LirisError(
             source,
             f"implausible coordinates in {n_bad} of {len(xyz)} points (beyond "
-            f"{MAX_COORDINATE_M:.0e} m or non-zero below {MIN_NONZERO_COORDINATE_M:.0e} m; "
+            f"{MAX_COORDINATE_M:.0e} m or subnormal; "
             f"rule finite-plausible-coordinates): not float32 x, y, z data (random bytes, "
             f"a float64 file?)",
         )

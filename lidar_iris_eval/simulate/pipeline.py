@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from lidar_iris_eval import __version__
+from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 from lidar_iris_eval.simulate import labels
 from lidar_iris_eval.simulate.presets import SimConfig, resolve_config
@@ -197,6 +198,11 @@ def run_simulation(
         prepare_out_dir(work, overwrite=True)
         report = _simulate_into(work, out_dir, cfg, scen, progress, preset, start)
         publish(work, out_dir)
+    except LirisError as err:  # name the file the user asked for, not its temporary folder
+        source = err.source or ""
+        if source.startswith(str(work)):
+            raise LirisError(str(out_dir) + source[len(str(work)):], err.problem) from None
+        raise
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return report
