@@ -539,6 +539,21 @@ def test_report_on_full_disk_names_the_report(run_dir, tmp_path, monkeypatch, ca
     assert not list(tmp_path.glob(".rep*"))
 
 
+def test_export_npy_on_full_disk_names_the_file(seq, tmp_path, monkeypatch, capsys):
+    real = np.save
+
+    def full(file, *args, **kwargs):
+        if not isinstance(file, (str, os.PathLike)):  # the export's open handle
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(file, *args, **kwargs)
+
+    monkeypatch.setattr(np, "save", full)
+    code, _, err = run_cli(["extract", seq, "-d", "m2dp", "--cache-dir", tmp_path / "c",
+                            "-q", "--export-npy", tmp_path / "E"], capsys)
+    assert_one_line_error(code, err, "E/m2dp.npy", "no space left")
+    assert not list((tmp_path / "E").iterdir())
+
+
 def test_export_npy_files_follow_the_umask(seq, tmp_path, capsys):
     old = os.umask(0o022)
     try:
