@@ -70,7 +70,7 @@ class DescriptorDB:
     cache_path : the cache file, or None when no cache was used.
     from_cache : True when nothing was computed in this call.
     warnings : the warnings that qualify results computed from these descriptors
-        (degenerate descriptors, :mod:`lidar_iris_eval.evaluation.sanity`); the
+        (degenerate descriptors, :mod:`lidar_iris_eval.descriptors.sanity`); the
         run stores them with each result row.
     """
 
@@ -254,7 +254,7 @@ def _say_warming_up(bar) -> None:
 def _warn_if_degenerate(arrays, descriptor, seq) -> tuple[str, ...]:
     """Warn when most descriptors are empty or constant (millimetres, wrong frame);
     returns the warnings, which qualify every result of these descriptors."""
-    from lidar_iris_eval.evaluation.sanity import recording_qualifiers, warn_if_degenerate
+    from lidar_iris_eval.descriptors.sanity import recording_qualifiers, warn_if_degenerate
 
     with recording_qualifiers() as found:
         warn_if_degenerate(arrays.get("descriptors"), descriptor.name, seq.name,
@@ -463,3 +463,25 @@ def _init_worker(seq, descriptor, parent_pid: int | None = None) -> None:
 
 def _worker_range(a: int, b: int):
     return _compute_range(_WORKER["seq"], _WORKER["descriptor"], a, b)
+
+
+def external_database(desc, seq_name: str = "", fingerprint: str = ""):
+    """A :class:`DescriptorDB` for an
+    :class:`~lidar_iris_eval.descriptors.external.ExternalDescriptor`, as extraction returns.
+
+    Times are NaN: the descriptors were computed elsewhere, so their cost is
+    unknown and is reported as undefined.
+    """
+    from lidar_iris_eval.descriptors.sanity import recording_qualifiers, warn_if_degenerate
+
+    stacked = desc.stacked()
+    n = len(stacked)
+    with recording_qualifiers() as found:
+        if desc.params.kind == "vectors":
+            # the same check as built-in descriptors get after extraction
+            warn_if_degenerate(stacked, desc.name, seq_name or "external")
+    return DescriptorDB(descriptor=desc.name, preset=desc.preset, params=params_dict(desc.params),
+                        descriptors=stacked, extract_s=np.full(n, np.nan),
+                        read_s=np.full(n, np.nan), sequence=seq_name, fingerprint=fingerprint,
+                        cache_path=None, from_cache=False,
+                        warnings=tuple(entry["warning"] for entry in found))

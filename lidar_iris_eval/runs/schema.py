@@ -14,7 +14,7 @@ Rules:
   :data:`NUMBER_PREFIXES`) is a finite number or null (undefined, never 0);
 * ``conventions`` and ``sequence`` are mappings when present;
 * a result's ``warnings`` (the warnings that qualify its numbers, e.g. a
-  degenerate descriptor, see :mod:`lidar_iris_eval.evaluation.sanity`) is a
+  degenerate descriptor, see :mod:`lidar_iris_eval.descriptors.sanity`) is a
   list of text when present; :func:`result_warnings` lists them for ``show``,
   ``compare`` and ``report``.
 """

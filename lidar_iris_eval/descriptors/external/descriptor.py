@@ -174,26 +174,3 @@ def load_external(name: str, path: str | Path, n_frames: int, metric: str | None
     params = ExternalParams(path=str(path.resolve()), kind=kind,
                             metric=metric if kind == "vectors" else None, sha256=digest)
     return ExternalDescriptor(params, PRESET, name=name, array=array)
-
-
-def external_database(desc: ExternalDescriptor, seq_name: str = "", fingerprint: str = ""):
-    """A :class:`~lidar_iris_eval.extract.DescriptorDB` for ``desc``, as extraction returns.
-
-    Times are NaN: the descriptors were computed elsewhere, so their cost is
-    unknown and is reported as undefined.
-    """
-    from lidar_iris_eval.config import params_dict
-    from lidar_iris_eval.evaluation.sanity import recording_qualifiers, warn_if_degenerate
-    from lidar_iris_eval.extract import DescriptorDB
-
-    stacked = desc.stacked()
-    n = len(stacked)
-    with recording_qualifiers() as found:
-        if desc.params.kind == "vectors":
-            # the same check as built-in descriptors get after extraction
-            warn_if_degenerate(stacked, desc.name, seq_name or "external")
-    return DescriptorDB(descriptor=desc.name, preset=desc.preset, params=params_dict(desc.params),
-                        descriptors=stacked, extract_s=np.full(n, np.nan),
-                        read_s=np.full(n, np.nan), sequence=seq_name, fingerprint=fingerprint,
-                        cache_path=None, from_cache=False,
-                        warnings=tuple(entry["warning"] for entry in found))
