@@ -500,8 +500,8 @@ def cases() -> list[Case]:
              check=lambda r: None if "cannot mean much" in r.out else "no warning shown"))
 
     # exports
-    add(Case("export npy mode", ["eval", "S", *quick, "-d", "m2dp", "--protocol", "1",
-                                 "--export-npy", "E"], seq, "ok",
+    add(Case("export npy mode", ["extract", "S", *quick, "-d", "m2dp", "--export-npy", "E"],
+             seq, "ok",
              check=lambda r: None if all(
                  (p.stat().st_mode & 0o777) == 0o644 for p in (r.cwd / "E").glob("*.npy"))
              else "export not 0644"))
