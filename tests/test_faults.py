@@ -319,7 +319,8 @@ def test_external_npz_is_one_line(seq, capsys):
     np.random.default_rng(0).random((FRAMES, 8)) * 1e200,  # squared distances overflow
 ], ids=["constant", "identical", "overflow"])
 def test_degenerate_external_descriptors_are_warned_about(seq, array):
-    from lidar_iris_eval.descriptors.external import external_database, load_external
+    from lidar_iris_eval.descriptors.external import load_external
+    from lidar_iris_eval.extract import external_database
 
     np.save(seq / "f.npy", array)
     desc = load_external("net", seq / "f.npy", FRAMES)
