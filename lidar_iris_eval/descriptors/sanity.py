@@ -150,7 +150,8 @@ def _overflow_or_identical(descriptors) -> str | None:
     identical = True
     for a in range(0, n, step):
         block = flat[a : a + step]
-        if np.issubdtype(block.dtype, np.floating) and (
+        # float32/16 cannot hold such values (their maximum is 3.4e38): only wider floats
+        if np.issubdtype(block.dtype, np.floating) and block.dtype.itemsize >= 8 and (
                 np.abs(block[np.isfinite(block)]) > OVERFLOW_MAGNITUDE).any():
             return (f"values beyond {OVERFLOW_MAGNITUDE:.0e} (their squared distances overflow "
                     f"float64) in the")
