@@ -76,6 +76,9 @@ class CacheKey:
     version: str
     n_scans: int
     code: str = ""  # hash of the descriptor source code (see extract.descriptor_code_hash)
+    #: fingerprint of the inputs a method declares beyond the scan files (labels), see
+    #: :func:`input_fingerprint`; "" for methods that read only the scan files
+    inputs: str = ""
 
     @classmethod
     def build(
@@ -87,12 +90,17 @@ class CacheKey:
         version: str,
         n_scans: int,
         code: str = "",
+        inputs: str = "",
     ) -> CacheKey:
         text = json.dumps(params, sort_keys=True, default=str)
-        return cls(sequence, fingerprint, descriptor, text, version, int(n_scans), code)
+        return cls(sequence, fingerprint, descriptor, text, version, int(n_scans), code,
+                   inputs)
 
     def digest(self) -> str:
-        text = json.dumps({"format": CACHE_FORMAT, **asdict(self)}, sort_keys=True)
+        fields = asdict(self)
+        if not fields["inputs"]:
+            del fields["inputs"]  # keys of scan-only methods stay those of earlier releases
+        text = json.dumps({"format": CACHE_FORMAT, **fields}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:20]
 
     def stem(self) -> str:
@@ -161,6 +169,26 @@ def read_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     if meta.get("checksum") != arrays_checksum(arrays):
         raise ValueError("checksum mismatch")
     return arrays, meta
+
+
+def input_fingerprint(seq: Any, inputs: frozenset[str] | set[str]) -> str:
+    """A fingerprint of the inputs in ``inputs`` that live outside the scan files.
+
+    ``seq.fingerprint()`` covers the scan files (points and intensity) and, for
+    object sequences, the object files. Per-point labels are separate files
+    (``labels/*.label``): a method that declares ``"labels"`` gets them hashed
+    here, the same way as the scans, so editing a label file never serves the
+    descriptors computed from the old one. "" when nothing beyond the scans is read.
+    """
+    from lidar_iris_eval.io.sequence import hash_file_samples
+
+    parts = []
+    label_paths = getattr(seq, "label_paths", None)
+    if "labels" in inputs and label_paths:
+        digest = hashlib.sha256(b"labels;")
+        hash_file_samples(digest, list(label_paths))
+        parts.append(f"labels:{digest.hexdigest()[:16]}")
+    return ";".join(parts)
 
 
 class DescriptorCache:
@@ -233,26 +261,34 @@ class DescriptorCache:
         if not folder.is_dir():
             return chunks
         for path in sorted(folder.glob("chunk-*.npz")):
-            arrays = self._load_verified(path, key)
-            if arrays is None:
-                continue
             try:
                 _, a, b = path.stem.split("-")
                 start, stop = int(a), int(b)
             except ValueError:
+                continue
+            # a chunk holds the rows its name says: its header records the range it was
+            # written for, so a chunk copied or renamed over another is rejected
+            arrays = self._load_verified(path, key, {"start": start, "stop": stop})
+            if arrays is None:
                 continue
             per_scan = [v for name, v in arrays.items() if not _flat_values(name)]
             if all(len(v) == stop - start for v in per_scan):
                 chunks[(start, stop)] = arrays
         return chunks
 
-    def _load_verified(self, path: Path, key: CacheKey) -> dict[str, np.ndarray] | None:
+    def _load_verified(self, path: Path, key: CacheKey,
+                       expect: dict[str, Any] | None = None) -> dict[str, np.ndarray] | None:
         if not path.is_file():
             return None
         try:
             arrays, meta = read_arrays(path)
             if meta.get("digest") != key.digest():
                 raise ValueError("written for a different key")
+            for name, value in (expect or {}).items():
+                if meta.get(name) != value:
+                    raise ValueError(f"holds rows {meta.get('start')}-{meta.get('stop')}, "
+                                     f"not the {expect.get('start')}-{expect.get('stop')} "
+                                     f"its name says")
         except PermissionError:
             self._unreadable.add(self.path(key))
             warn(path, "cache file is not readable (permission denied); leaving it in place "

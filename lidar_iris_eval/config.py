@@ -31,6 +31,12 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 P = TypeVar("P")
 
+#: rule ``integer-parameter-range``: a size, count or iteration parameter above this
+#: would only allocate terabytes or run for days; it is a typo, refused before any work
+MAX_INTEGER_PARAMETER = 10**7
+#: seeds are exempt from that bound but must fit NumPy's generators: 0 <= seed < 2**64
+MAX_SEED = 2**64 - 1
+
 
 def load_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping, reporting a missing or malformed file as a LirisError."""
@@ -70,6 +76,7 @@ def make_params(params_type: type[P], values: dict[str, Any], source: str) -> P:
         default = fields[key].default
         try:
             converted[key] = _coerce(value, default)
+            _check_integer_range(key, converted[key], default)
         except (TypeError, ValueError) as err:
             reason = f": {err}" if str(err) else ""
             raise LirisError(source, f"bad value {value!r} for {key}{reason}") from None
@@ -95,7 +102,20 @@ def _renamed_keys(params_type: type, values: dict[str, Any], source: str) -> dic
     return out
 
 
+def _check_integer_range(key: str, value: Any, default: Any) -> None:
+    """Rule ``integer-parameter-range`` (see :data:`MAX_INTEGER_PARAMETER`)."""
+    if isinstance(default, bool) or not isinstance(default, int) or not isinstance(value, int):
+        return
+    if key == "seed" or key.endswith("_seed"):
+        if not 0 <= value <= MAX_SEED:
+            raise ValueError("a seed must be between 0 and 2**64 - 1")
+    elif abs(value) > MAX_INTEGER_PARAMETER:
+        raise ValueError(f"beyond {MAX_INTEGER_PARAMETER:,} (rule integer-parameter-range)")
+
+
 def _coerce(value: Any, default: Any) -> Any:
+    if value is None and default is not None and default is not dataclasses.MISSING:
+        raise ValueError("no value given")
     if default is dataclasses.MISSING or default is None or value is None:
         return tuple(value) if isinstance(value, list) else value
     if isinstance(default, bool):
@@ -157,3 +177,92 @@ def descriptor_preset_values(
         overrides = (sensors.get(sensor) or {}).get(preset) or {}
         values.update(overrides)
     return preset, values
+
+
+# --- strict schemas for YAML/JSON files liris reads back ------------------------------
+
+
+class AnyMapping:
+    """Schema leaf: a mapping whose keys are not checked (e.g. descriptor parameters)."""
+
+
+class OneOf:
+    """Schema leaf: one of ``choices``, or a value accepted by ``accept``."""
+
+    def __init__(self, *choices: Any, accept=None, text: str = ""):
+        self.choices = choices
+        self.accept = accept
+        self.text = text or ", ".join(map(str, choices))
+
+
+_TYPE_NAMES = {str: "text", int: "a whole number", float: "a number", bool: "true/false",
+               type(None): "null", list: "a list", dict: "a mapping"}
+
+
+def _type_ok(value: Any, kind: type) -> bool:
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
+def check_schema(value: Any, schema: Any, source: str | Path, where: str = "") -> None:
+    """Raise one LirisError naming ``source`` and the key path when ``value`` breaks ``schema``.
+
+    ``schema`` is a type (``str``, ``int``, ``float`` for any number, ``bool``), a
+    tuple of alternatives (``(int, None)``), a dict (a mapping with exactly those
+    optional keys: unknown keys are errors, as in ``--plan`` files), a
+    one-element list (a list of that schema), :class:`AnyMapping` or :class:`OneOf`.
+    """
+    label = where or "top level"
+    if isinstance(schema, tuple):
+        errors = []
+        for option in schema:
+            try:
+                check_schema(value, type(None) if option is None else option, source, where)
+                return
+            except LirisError as err:
+                errors.append(err.problem.split(": ", 1)[-1])
+        raise LirisError(source, f"{label}: expected {' or '.join(_describe(o) for o in schema)}, "
+                                 f"got {value!r}")
+    if isinstance(schema, dict):
+        if not isinstance(value, dict):
+            raise LirisError(source, f"{label}: expected a mapping, got {value!r}")
+        unknown = sorted(str(k) for k in set(value) - set(schema))
+        if unknown:
+            raise LirisError(source, f"{label}: unknown key(s) {', '.join(unknown)}; valid: "
+                                     f"{', '.join(sorted(schema))}")
+        for key, item in value.items():
+            check_schema(item, schema[key], source, f"{where}.{key}" if where else str(key))
+        return
+    if isinstance(schema, list):
+        if not isinstance(value, list):
+            raise LirisError(source, f"{label}: expected a list, got {value!r}")
+        for k, item in enumerate(value):
+            check_schema(item, schema[0], source, f"{label}[{k}]")
+        return
+    if schema is AnyMapping:
+        if not isinstance(value, dict):
+            raise LirisError(source, f"{label}: expected a mapping, got {value!r}")
+        return
+    if isinstance(schema, OneOf):
+        if value in schema.choices or (schema.accept is not None and schema.accept(value)):
+            return
+        raise LirisError(source, f"{label}: {value!r} is not valid; choose {schema.text}")
+    if not _type_ok(value, schema):
+        raise LirisError(source, f"{label}: expected {_describe(schema)}, got {value!r}")
+    if schema is float and not math.isfinite(value):
+        raise LirisError(source, f"{label}: must be a finite number, got {value!r}")
+
+
+def _describe(schema: Any) -> str:
+    if schema is None:
+        return "null"
+    if isinstance(schema, dict) or schema is AnyMapping:
+        return "a mapping"
+    if isinstance(schema, list):
+        return "a list"
+    if isinstance(schema, OneOf):
+        return f"one of {schema.text}"
+    return _TYPE_NAMES.get(schema, getattr(schema, "__name__", str(schema)))

@@ -45,7 +45,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lidar_iris_eval import __version__
-from lidar_iris_eval.cache import CacheKey, DescriptorCache
+from lidar_iris_eval.cache import CacheKey, DescriptorCache, input_fingerprint
 from lidar_iris_eval.config import params_dict
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.features import RaggedFeatures
@@ -69,6 +69,9 @@ class DescriptorDB:
     sequence, fingerprint : the sequence name and content fingerprint.
     cache_path : the cache file, or None when no cache was used.
     from_cache : True when nothing was computed in this call.
+    warnings : the warnings that qualify results computed from these descriptors
+        (degenerate descriptors, :mod:`lidar_iris_eval.descriptors.sanity`); the
+        run stores them with each result row.
     """
 
     descriptor: str
@@ -81,6 +84,7 @@ class DescriptorDB:
     fingerprint: str
     cache_path: Path | None
     from_cache: bool
+    warnings: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.descriptors)
@@ -146,6 +150,7 @@ def cache_key(seq, descriptor: Descriptor, fingerprint: str | None = None) -> Ca
         version=f"{__version__}+numpy-{np.__version__}",
         n_scans=len(seq),
         code=descriptor_code_hash(descriptor),
+        inputs=input_fingerprint(seq, descriptor.inputs),
     )
 
 
@@ -200,8 +205,8 @@ def extract(
     if cache is not None:
         stored = cache.load(key)
         if stored is not None and _complete(stored, len(seq)):
-            _warn_if_degenerate(stored, descriptor, seq)
-            return DescriptorDB(**meta, **_split(stored), from_cache=True)
+            found = _warn_if_degenerate(stored, descriptor, seq)
+            return DescriptorDB(**meta, **_split(stored), from_cache=True, warnings=found)
 
     if cache is not None and not cache.writable(key):
         meta["cache_path"] = None  # someone else's unreadable file: compute, do not store
@@ -218,6 +223,8 @@ def extract(
     bar = tqdm(total=len(seq), initial=len(seq) - sum(b - a for a, b in todo),
                desc=descriptor.name, unit="scan", file=sys.stderr, disable=not progress,
                leave=False)
+    if todo and getattr(descriptor, "warm_up", True) is not False:
+        _say_warming_up(bar)
     with bar:
         for (a, b), arrays in _compute_chunks(seq, descriptor, todo, workers, bar, executor):
             if cache is not None:
@@ -226,16 +233,33 @@ def extract(
     arrays = joined.arrays()
     if cache is not None:
         cache.store(key, arrays)
-    _warn_if_degenerate(arrays, descriptor, seq)
-    return DescriptorDB(**meta, **_split(arrays), from_cache=False)
+    found = _warn_if_degenerate(arrays, descriptor, seq)
+    return DescriptorDB(**meta, **_split(arrays), from_cache=False, warnings=found)
 
 
-def _warn_if_degenerate(arrays, descriptor, seq) -> None:
-    """Warn when most descriptors are empty or constant (millimetres, wrong frame)."""
-    from lidar_iris_eval.descriptors.sanity import warn_if_degenerate
+def _say_warming_up(bar) -> None:
+    """Until the first scan is done, the bar says why it sits at 0 %: the first call
+    compiles the kernels (about 27 s for LiDAR Iris on a cold cache)."""
+    bar.set_postfix_str("first scan: compiling kernels on a first run", refresh=True)
+    update = bar.update
 
-    warn_if_degenerate(arrays.get("descriptors"), descriptor.name, seq.name,
-                       sample=lambda i: seq[i])
+    def first_update(n=1):
+        bar.update = update
+        bar.set_postfix_str("", refresh=False)
+        return update(n)
+
+    bar.update = first_update
+
+
+def _warn_if_degenerate(arrays, descriptor, seq) -> tuple[str, ...]:
+    """Warn when most descriptors are empty or constant (millimetres, wrong frame);
+    returns the warnings, which qualify every result of these descriptors."""
+    from lidar_iris_eval.descriptors.sanity import recording_qualifiers, warn_if_degenerate
+
+    with recording_qualifiers() as found:
+        warn_if_degenerate(arrays.get("descriptors"), descriptor.name, seq.name,
+                           sample=lambda i: seq[i])
+    return tuple(entry["warning"] for entry in found)
 
 
 def _complete(arrays: dict[str, np.ndarray], n: int) -> bool:
@@ -354,6 +378,7 @@ def _compute_range(seq, descriptor, a: int, b: int, tick=None):
     """
     outputs, extract_s, read_s = [], np.empty(b - a), np.empty(b - a)
     wants_scan = descriptor.wants_scan()
+    i = a
     try:
         for k, i in enumerate(range(a, b)):
             t0 = time.perf_counter()
@@ -375,7 +400,11 @@ def _compute_range(seq, descriptor, a: int, b: int, tick=None):
             if tick is not None:
                 tick(1)
     except LirisError as err:
-        return ("error", err.source, err.problem)
+        return ("error", scan_source(seq, i, err.source), err.problem)
+    except MemoryError:
+        return ("error", f"{descriptor.name} parameters",
+                f"not enough memory to compute the descriptor of one scan "
+                f"({scan_source(seq, i, None)}); check --param / the preset's sizes")
     times = {"extract_s": extract_s, "read_s": read_s}
     if outputs and isinstance(outputs[0], dict):
         if not all(isinstance(o, dict) for o in outputs):
@@ -384,6 +413,16 @@ def _compute_range(seq, descriptor, a: int, b: int, tick=None):
         features = RaggedFeatures.from_list(outputs, f"{descriptor.name}.compute")
         return {**features.to_arrays(), **times}
     return {"descriptors": np.stack(outputs), **times}
+
+
+def scan_source(seq, index: int, source: str | None) -> str | None:
+    """A descriptor's complaint about its ``points`` named by the scan it came from."""
+    if source not in (None, "points"):
+        return source
+    paths = getattr(seq, "scan_paths", None)
+    if paths is not None and index < len(paths):
+        return str(paths[index])
+    return f"{getattr(seq, 'name', 'sequence')} scan {index}"
 
 
 #: descriptors (class and parameters) already run once in this process
@@ -433,9 +472,16 @@ def external_database(desc, seq_name: str = "", fingerprint: str = ""):
     Times are NaN: the descriptors were computed elsewhere, so their cost is
     unknown and is reported as undefined.
     """
+    from lidar_iris_eval.descriptors.sanity import recording_qualifiers, warn_if_degenerate
+
     stacked = desc.stacked()
     n = len(stacked)
+    with recording_qualifiers() as found:
+        if desc.params.kind == "vectors":
+            # the same check as built-in descriptors get after extraction
+            warn_if_degenerate(stacked, desc.name, seq_name or "external")
     return DescriptorDB(descriptor=desc.name, preset=desc.preset, params=params_dict(desc.params),
                         descriptors=stacked, extract_s=np.full(n, np.nan),
                         read_s=np.full(n, np.nan), sequence=seq_name, fingerprint=fingerprint,
-                        cache_path=None, from_cache=False)
+                        cache_path=None, from_cache=False,
+                        warnings=tuple(entry["warning"] for entry in found))

@@ -13,7 +13,6 @@ import warnings
 
 import numpy as np
 import pytest
-
 from conftest import run_cli
 
 pytest.importorskip("lidar_iris_eval.simulate")

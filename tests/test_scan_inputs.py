@@ -27,21 +27,22 @@ from lidar_iris_eval.io.scans import Scan
 
 
 def labelled_sequence(root: Path, n: int = 8, seed: int = 0, labels: bool = True) -> Path:
-    """A KITTI-layout sequence whose labels say ``class = 10 + i % 3``, instance = point index."""
+    """A KITTI-layout sequence: labels say ``class = 50 + i % 3`` (SemanticKITTI building,
+    fence, other-structure), instance = point index."""
     rng = np.random.default_rng(seed)
     scans = [random_scan(rng, n_points=50 + 7 * i) for i in range(n)]
     write_kitti_sequence(root, scans, line_poses(np.arange(n) * 10.0))
     if labels:
         (root / "labels").mkdir()
         for i, s in enumerate(scans):
-            lab = (10 + np.arange(len(s)) % 3) | (np.arange(len(s)) << 16)
+            lab = (50 + np.arange(len(s)) % 3) | (np.arange(len(s)) << 16)
             lab.astype("<u4").tofile(root / "labels" / f"{i:06d}.label")
     return root
 
 
 @dataclass(frozen=True)
 class ClassParams:
-    classes: tuple = (10, 11, 12)
+    classes: tuple = (50, 51, 52)
 
 
 class ClassCentroids(Descriptor):
@@ -61,7 +62,7 @@ class ClassCentroids(Descriptor):
             raise KeyboardInterrupt  # simulated interruption mid-run
         ClassCentroids.seen.add(len(scan.points))
         sem = scan.labels & 0xFFFF
-        # keep a varying number of points per scan so K varies: drop class 12 on odd sizes
+        # keep a varying number of points per scan so K varies: drop class 52 on odd sizes
         present = [c for c in self.params.classes if np.any(sem == c)]
         if len(scan.points) % 2:
             present = present[:2]
@@ -79,7 +80,7 @@ def test_kitti_reader_reads_semantickitti_labels(tmp_path):
     assert seq.has_labels and "labels" in seq.provides
     scan = seq.scan(3)
     assert scan.labels.dtype == np.uint32 and len(scan.labels) == len(scan.points) == 71
-    np.testing.assert_array_equal(scan.labels & 0xFFFF, 10 + np.arange(71) % 3)
+    np.testing.assert_array_equal(scan.labels & 0xFFFF, 50 + np.arange(71) % 3)
     np.testing.assert_array_equal(scan.labels >> 16, np.arange(71))
     np.testing.assert_array_equal(seq[3], scan.points)  # bare points as before
 
@@ -113,11 +114,11 @@ def test_folder_reader_reads_labels_folder(tmp_path):
     for i in range(3):
         pts = random_scan(rng, 30)
         np.save(folder / f"{i:06d}.npy", pts)
-        np.full(30, 40 + i, "<u4").tofile(folder / "labels" / f"{i:06d}.label")
+        np.full(30, (40, 44, 48)[i], "<u4").tofile(folder / "labels" / f"{i:06d}.label")
     np.savetxt(folder / "poses.txt", line_poses(np.arange(3.0))[:, :3, :4].reshape(3, 12))
     seq = open_folder(folder, lidar_frame=True)
     assert seq.has_labels
-    assert set(seq.scan(2).labels.tolist()) == {42}
+    assert set(seq.scan(2).labels.tolist()) == {48}
     (folder / "labels").rename(tmp_path / "elsewhere")
     assert not open_folder(folder, lidar_frame=True).has_labels
 

@@ -40,7 +40,11 @@ _default_showwarning = warnings.showwarning
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="liris")
 def cli() -> None:
-    """Evaluate LiDAR loop-closure descriptors (LiDAR Iris, Scan Context, M2DP, ESF)."""
+    """Evaluate LiDAR loop-closure descriptors (LiDAR Iris, Scan Context, M2DP, ESF,
+    GOSMatch, ESM) under protocol 1 (best match) and protocol 2 (all pairs).
+
+    Start with `liris simulate OUT` and `liris eval OUT -d lidar-iris`.
+    """
     warnings.showwarning = _show_warning
 
 
@@ -99,8 +103,41 @@ def _register_reader_flags() -> None:
     register_flags(flags)
 
 
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _check_workers(ctx, param, value):
+    """``--workers``: at least 1; more than the usable CPUs is clamped, with a warning
+    (1000 processes on 2 cores only thrash: load 118 measured)."""
+    if value is None:
+        return value
+    if value < 1:
+        raise click.BadParameter(f"must be at least 1, got {value}", ctx=ctx, param=param)
+    cpus = usable_cpus()
+    if value > cpus:
+        from lidar_iris_eval.errors import warn
+
+        warn(f"--workers {value}", f"more than the {cpus} usable CPU(s); using {cpus}")
+        return cpus
+    return value
+
+
+def _clamped_workers() -> None:
+    """Give every ``--workers`` option the check above, in one place."""
+    for command in cli.commands.values():
+        for param in command.params:
+            if isinstance(param, click.Option) and param.name == "workers":
+                param.callback = _check_workers
+
+
 _register_reader_flags()
 _finite_floats()
+_clamped_workers()
 
 
 def main(argv: list[str] | None = None) -> None:

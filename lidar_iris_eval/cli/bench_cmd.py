@@ -28,6 +28,7 @@ from lidar_iris_eval.cli.output import (
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 from lidar_iris_eval.runs.writer import json_ready
+from lidar_iris_eval.simulate.presets import PRESETS
 
 DEFAULT_FRAMES = 4541
 #: azimuth steps of a full-resolution simulated HDL-64E scan (~120k points, like KITTI)
@@ -47,13 +48,14 @@ def build_bench_descriptors(text: str, preset: str | None):
 
 @click.command("bench")
 @click.option("--frames", type=int, default=None,
-              help=f"Frames of the simulated sequence [default: {DEFAULT_FRAMES}].")
+              help=f"A COUNT: frames of the simulated sequence [default: {DEFAULT_FRAMES}].")
 @click.option("--descriptor", "-d", "descriptor_text", default=DEFAULT_DESCRIPTORS,
               show_default=True, help="NAME[,NAME...]; NAME:PRESET picks one descriptor's preset.")
 @click.option("--preset", default=None,
               help="Descriptor preset for all descriptors (default: each one's first; "
                    "scan-context: exhaustive).")
 @click.option("--world", "sim_preset", default="kitti-scale", show_default=True,
+              type=click.Choice(sorted(PRESETS)),
               help="Simulated world (a liris simulate --world preset) of the sequence.")
 @deprecated_alias("--sim-preset", "--world", "sim_preset")
 @click.option("--azimuth-steps", type=int, default=None,

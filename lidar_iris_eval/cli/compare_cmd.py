@@ -6,15 +6,17 @@ from pathlib import Path
 
 import click
 
+from lidar_iris_eval.atomic import figure_format
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.runs import FORMATS, load_run, render_table
 from lidar_iris_eval.runs.compare import (
     convention_differences,
-    count_differences,
+    difference_summary,
     metric_comparison,
     plot_pr_overlay,
     run_labels,
 )
+from lidar_iris_eval.runs.schema import result_warnings
 
 
 @click.command("compare")
@@ -33,15 +35,19 @@ def command(runs, fmt, plot_out):
     """
     if len(runs) < 2:
         raise LirisError("compare", "give at least two run folders")
+    if plot_out is not None:
+        figure_format(plot_out, "--plot")  # a bad suffix fails before any work
     loaded = [load_run(r) for r in runs]
     labels = run_labels(loaded)
     rows = metric_comparison(loaded)
     columns = ["protocol", "descriptor", "preset", "metric", *labels,
                *[f"{lab} - {labels[0]}" for lab in labels[1:]]]
     click.echo(render_table(rows, fmt, columns=columns, summarize=False))
-    n_diff = count_differences(rows, labels)
     click.echo("")
-    click.echo(f"{n_diff} metric value(s) differ from {labels[0]}")
+    click.echo(difference_summary(rows, labels))
+    for run, label in zip(loaded, labels, strict=True):
+        for line in result_warnings(run.rows):  # warnings that qualify a run's numbers
+            click.echo(f"warning ({label}): {line}")
     differences = convention_differences(loaded)
     if differences:
         click.echo("conventions and settings that differ (the numbers are not like for like):")

@@ -13,7 +13,7 @@ import yaml
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_options
-from lidar_iris_eval.descriptors import Descriptor, get_descriptor
+from lidar_iris_eval.descriptors import Descriptor, available_descriptors, get_descriptor
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract
 from lidar_iris_eval.io.sequence import full_scan_hashing
@@ -92,7 +92,8 @@ def descriptor_options(func):
         pose_file_options,
         sequence_options,
         click.option("--descriptor", "-d", "descriptor_text", required=True,
-                     help="NAME[,NAME...]; NAME:PRESET picks a preset for one descriptor."),
+                     help=f"NAME[,NAME...] of {', '.join(available_descriptors())}; "
+                          "NAME:PRESET picks a preset for one descriptor."),
         click.option("--preset", default=None,
                      help="Descriptor preset for all descriptors (default: each one's first)."),
         click.option("--param", "params", multiple=True, metavar="NAME.KEY=VALUE",

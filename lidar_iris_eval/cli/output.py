@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from lidar_iris_eval.atomic import write_atomic
+from lidar_iris_eval.atomic import atomic_write
 from lidar_iris_eval.errors import LirisError, check_writable_dir, file_in_the_way
 
 
@@ -68,4 +68,4 @@ def check_output_file(path: Path, flag: str) -> Path:
 
 def write_output_file(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (temporary file + rename), umask permissions."""
-    write_atomic(path, text)
+    atomic_write(path, text)

@@ -52,7 +52,8 @@ def sequence_options(func):
     @click.option("--tolerance", type=float, default=None,
                   help="Seconds; scans with no pose this close in time are dropped [0.1].")
     @click.option("--frames", default=None, metavar="START:STOP[:STEP]",
-                  help="Keep these frames (0-based, STOP excluded), e.g. 0:200:2; any format.")
+                  help="A frame RANGE to keep (0-based, STOP excluded), e.g. 0:200 or 0:200:2; "
+                       "any format. (In simulate and bench --frames is a count.)")
     @click.option("--every", type=int, default=None,
                   help="Keep every N-th scan (after --frames and --min-distance); any format.")
     @click.option("--min-distance", type=float, default=None,

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from lidar_iris_eval.runs import FORMATS, conventions_lines, load_run, render_table
+from lidar_iris_eval.runs.schema import result_warnings
 
 
 @click.command("show")
@@ -23,9 +24,11 @@ def command(run, fmt, no_conventions):
     """
     loaded = load_run(run)
     click.echo(render_table(loaded.rows, fmt))
+    prefix = {"markdown": "- ", "latex": "% ", "csv": "# "}.get(fmt, "")
+    for line in result_warnings(loaded.rows):  # stored with the numbers they qualify
+        click.echo(f"{prefix}warning: {line}", err=fmt != "table")
     if no_conventions:
         return
     click.echo("")
-    prefix = {"markdown": "- ", "latex": "% ", "csv": "# "}.get(fmt, "")
     for line in conventions_lines(loaded.conventions, loaded.config):
         click.echo(prefix + line)

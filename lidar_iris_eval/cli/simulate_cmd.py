@@ -17,8 +17,9 @@ from lidar_iris_eval.simulate.trajectories import ROUTES
 @click.option("--world", "preset", type=click.Choice(sorted(PRESETS)), default="tiny-mixed",
               show_default=True, help="Built-in sequence; the options below override it.")
 @deprecated_alias("--preset", "--world", "preset", type=click.Choice(sorted(PRESETS)))
-@click.option("--frames", type=int, help="Number of scans (default: the preset's; with "
-              "--trajectory, every pose of the file).")
+@click.option("--frames", type=int, help="A COUNT: number of scans to simulate (default: the "
+              "preset's; with --trajectory, every pose of the file). gt/extract/eval take a "
+              "START:STOP range instead.")
 @click.option("--sensor", type=click.Choice(sorted(SENSORS)), help="LiDAR model.")
 @click.option("--route", type=click.Choice(ROUTES),
               help="Revisit pattern: same direction, reverse direction, or both.")

@@ -20,7 +20,6 @@ import functools
 import click
 from click.core import ParameterSource
 
-from lidar_iris_eval.atomic import atomic_path
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.runs.table import FORMATS
 
@@ -153,10 +152,14 @@ def export_npy(dbs, folder) -> dict[str, str]:
 
     import numpy as np
 
-    from lidar_iris_eval.errors import warn
+    from lidar_iris_eval.atomic import atomic_write
+    from lidar_iris_eval.errors import os_error, warn
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise os_error(err, folder, "cannot create the --export-npy folder") from None
     written = {}
     for db in dbs:
         array = db.descriptors
@@ -167,7 +170,7 @@ def export_npy(dbs, folder) -> dict[str, str]:
         target = folder / f"{db.descriptor}.npy"
         if target.exists():
             raise LirisError(target, "exists; remove it or choose another --export-npy folder")
-        with atomic_path(target) as tmp, open(tmp, "wb") as handle:
-            np.save(handle, array, allow_pickle=False)
+        atomic_write(target, lambda handle, a=array: np.save(handle, a, allow_pickle=False),
+                     what="exported descriptors")
         written[db.descriptor] = str(target)
     return written

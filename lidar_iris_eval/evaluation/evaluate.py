@@ -301,6 +301,9 @@ def _pose_kind(p1: Protocol1Result) -> str:
 
 def _rows(desc, db, p1, p2, settings) -> list[dict]:
     base = {"descriptor": desc.name, "preset": desc.preset}
+    qualifiers = list(getattr(db, "warnings", ()) or ())
+    if qualifiers:  # a warning that qualifies the numbers travels with them (runs/schema.py)
+        base["warnings"] = qualifiers
     rows = []
     if p1 is not None:
         matches = p1.matches
@@ -327,7 +330,9 @@ def _rows(desc, db, p1, p2, settings) -> list[dict]:
             "n_positives": p2.metrics["n_positives"],
             "n_negatives": p2.metrics["n_negatives"],
             "extract_ms_per_scan": db.extract_ms_per_scan,
-            "match_us_per_pair": aff.seconds / max(1, aff.n_evaluations) * 1e6,
+            "match_us_per_pair": (aff.seconds / aff.n_evaluations * 1e6
+                                  if aff.n_evaluations and p2.metrics["n_pairs"]
+                                  else float("nan")),  # no pair: no time per pair
             "n_distance_evaluations": aff.n_evaluations,
             "symmetric": aff.symmetric,
             "p_at_lowest_recall": p2.metrics["p_at_lowest_recall"],

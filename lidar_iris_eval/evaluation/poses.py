@@ -136,8 +136,7 @@ def export_loops(path: str | Path, query: np.ndarray, match: np.ndarray, pose: n
     if skipped:
         warn(path, f"{skipped} accepted loop(s) without a usable pose for this format were "
                    "not written")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("".join(f"{line}\n" for line in lines))
-    tmp.replace(path)
+    from lidar_iris_eval.atomic import atomic_write
+
+    atomic_write(path, "".join(f"{line}\n" for line in lines), what="loop file")
     return len(lines)

@@ -3,6 +3,12 @@
 KITTI ground-truth poses are those of the left camera (x right, y down,
 z forward). ``calib.txt`` holds ``Tr``, which maps Velodyne points into the
 camera frame, so a LiDAR-frame pose is ``inv(Tr) · T_cam · Tr``.
+
+Rule ``orthonormal-rotation``: the 3×3 rotation of every pose and of ``Tr``
+must satisfy ``max |RᵀR − I| <= ROTATION_TOLERANCE`` and ``det R > 0``. A
+zeroed, scaled or mirrored rotation is reported naming its file and line
+instead of silently changing the LiDAR-frame ground truth (``inv(Tr)`` of a
+singular ``Tr`` does not exist at all).
 """
 
 from __future__ import annotations
@@ -13,12 +19,45 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError, read_text
 
+#: rule ``orthonormal-rotation``: KITTI's poses are orthonormal to 2e-7 and poses printed
+#: with 6 decimals to about 1e-6; 1e-3 still rejects any zeroed, scaled or sheared matrix
+ROTATION_TOLERANCE = 1e-3
+
+
+def rotation_problem(rotation: np.ndarray) -> str | None:
+    """Why the 3×3 ``rotation`` breaks rule ``orthonormal-rotation``, or None."""
+    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if not error <= ROTATION_TOLERANCE:
+        return (f"rotation is not orthonormal (max |R^T R - I| = {error:.3g} > "
+                f"{ROTATION_TOLERANCE:g}; rule orthonormal-rotation)")
+    if np.linalg.det(rotation) <= 0:
+        return "rotation is a reflection (det R < 0; rule orthonormal-rotation)"
+    return None
+
+
+def check_rotations(poses: np.ndarray, path: Path, line_numbers: list[int] | None,
+                    what: str) -> None:
+    """Raise a LirisError naming the first pose (file:line) whose rotation is not one."""
+    rotations = np.asarray(poses)[:, :3, :3]
+    errors = np.abs(np.einsum("nji,njk->nik", rotations, rotations) - np.eye(3)).max(axis=(1, 2))
+    bad = ~(errors <= ROTATION_TOLERANCE) | (np.linalg.det(rotations) <= 0)
+    if bad.any():
+        first = int(np.argmax(bad))
+        where = f"{path}:{line_numbers[first]}" if line_numbers else f"{path} (pose {first})"
+        raise LirisError(where, f"{what}: {rotation_problem(rotations[first])}")
+
 
 def _read_rows(path: Path, expected: int, what: str) -> np.ndarray:
     """Parse a whitespace table whose rows each hold ``expected`` numbers."""
+    return _read_numbered_rows(path, expected, what)[0]
+
+
+def _read_numbered_rows(path: Path, expected: int, what: str) -> tuple[np.ndarray, list[int]]:
+    """:func:`_read_rows` plus the 1-based line number of each row."""
     if not path.is_file():
         raise LirisError(path, f"{what} file not found")
     rows = []
+    numbers = []
     for number, line in enumerate(read_text(path, f"{what} file").splitlines(), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
@@ -36,9 +75,10 @@ def _read_rows(path: Path, expected: int, what: str) -> np.ndarray:
         if not np.all(np.isfinite(values)):
             raise LirisError(f"{path}:{number}", f"malformed {what} line (NaN or inf)")
         rows.append(values)
+        numbers.append(number)
     if not rows:
         raise LirisError(path, f"{what} file is empty")
-    return np.asarray(rows, dtype=np.float64)
+    return np.asarray(rows, dtype=np.float64), numbers
 
 
 def to_homogeneous(rows: np.ndarray) -> np.ndarray:
@@ -50,7 +90,11 @@ def to_homogeneous(rows: np.ndarray) -> np.ndarray:
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     """Read a KITTI pose file: one row-major 3×4 matrix per line, ``(N, 4, 4)``."""
-    return to_homogeneous(_read_rows(Path(path), 12, "KITTI pose"))
+    path = Path(path)
+    rows, numbers = _read_numbered_rows(path, 12, "KITTI pose")
+    poses = to_homogeneous(rows)
+    check_rotations(poses, path, numbers, "KITTI pose")
+    return poses
 
 
 def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
@@ -134,7 +178,11 @@ def read_calib(path: str | Path) -> np.ndarray:
                 raise LirisError(
                     f"{path}:{number}", f"malformed Tr line: {values.size} numbers, expected 12"
                 )
-            return to_homogeneous(values[None])[0]
+            tr = to_homogeneous(values[None])[0]
+            problem = rotation_problem(tr[:3, :3])
+            if problem is not None:
+                raise LirisError(f"{path}:{number}", f"Tr (Velodyne to camera): {problem}")
+            return tr
     raise LirisError(path, "no 'Tr:' line (Velodyne to camera transform)")
 
 

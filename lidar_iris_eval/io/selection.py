@@ -39,7 +39,11 @@ def parse_frames(text: str | slice | None) -> slice | None:
         return text
     parts = str(text).split(":")
     if len(parts) not in (2, 3):
-        raise LirisError(f"--frames {text}", "expected START:STOP or START:STOP:STEP, e.g. 0:200:2")
+        hint = (f" ({text.strip()} alone is a count only for liris simulate and bench; here "
+                f"0:{text.strip()} keeps the first {text.strip()} frames)"
+                if str(text).strip().isdigit() else "")
+        raise LirisError(f"--frames {text}", "a frame range here: expected START:STOP or "
+                                             f"START:STOP:STEP, e.g. 0:200:2{hint}")
     try:
         values = [int(p) if p.strip() else None for p in parts]
     except ValueError:

@@ -210,9 +210,10 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
         "trajectory": build_trajectory(run),
         "timing": build_timing(run),
     }
-    # drawn even when the run did not score LiDAR Iris (default preset then): they
-    # explain the method, and only need the scans
-    figures["iris_frame"], figures["iris_alignment"] = build_iris(run, frame)
+    # only for a run that scored LiDAR Iris: a GOSMatch or ESM run's figures must not
+    # show another method's internals as if they were its own
+    if IRIS in run.descriptors():
+        figures["iris_frame"], figures["iris_alignment"] = build_iris(run, frame)
     return _write(figures, out, fmt, warn_overwrite=not default_out)
 
 

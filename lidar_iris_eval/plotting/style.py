@@ -124,10 +124,11 @@ def pixel_size(width: float, height: float, dpi: int = DPI) -> tuple[int, int]:
 
 def save(fig: Figure, path: Path) -> Path:
     """Write ``fig``; the format comes from the suffix. Returns the path."""
+    from lidar_iris_eval.atomic import atomic_save_figure
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with context():
-        fig.savefig(path, dpi=DPI, metadata=_metadata(path.suffix))
+        atomic_save_figure(fig, path, "figure", dpi=DPI, metadata=_metadata(path.suffix))
     return path
 
 

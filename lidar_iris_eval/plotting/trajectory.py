@@ -29,6 +29,14 @@ SINGLE_SIZE = (style.COLUMN_WIDTH, 3.0)
 LEGEND_HEIGHT = 0.42
 AXIS_NAMES = "xyz"
 
+#: the protocol 1 outcomes, as trajectory.png and the HTML report both name and count them
+OUTCOME_LABELS = {
+    "tp": "true positive",
+    "wrong": "wrong match (revisit)",
+    "missed": "missed revisit",
+    "false_alarm": "false alarm (no revisit)",
+}
+
 
 @dataclass(frozen=True)
 class Outcomes:
@@ -45,6 +53,11 @@ class Outcomes:
     def fp(self) -> np.ndarray:
         """Every accepted wrong match (wrong matches and false alarms)."""
         return np.sort(np.concatenate([self.wrong, self.false_alarm]))
+
+
+def outcome_counts(result: Outcomes) -> dict[str, int]:
+    """Queries per outcome (:data:`OUTCOME_LABELS` order); TP + wrong + missed = revisits."""
+    return {kind: int(len(getattr(result, kind))) for kind in OUTCOME_LABELS}
 
 
 def as_bool(column: pd.Series) -> np.ndarray:

@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, os_error
 from lidar_iris_eval.runs import Run, conventions_lines, load_run
+from lidar_iris_eval.runs.schema import result_warnings
 from lidar_iris_eval.runs.table import TABLE_COLUMNS, cell, table_row
 
 PLOTLY_JS = "plotly.min.js"
@@ -60,8 +61,12 @@ def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = Non
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; a report is meant to be shared
     try:
-        (tmp / PLOTLY_JS).write_text(plotly.offline.get_plotlyjs(), encoding="utf-8")
-        (tmp / "index.html").write_text(render_page(run, go, max_affinity_px), encoding="utf-8")
+        try:
+            (tmp / PLOTLY_JS).write_text(plotly.offline.get_plotlyjs(), encoding="utf-8")
+            (tmp / "index.html").write_text(render_page(run, go, max_affinity_px),
+                                            encoding="utf-8")
+        except OSError as err:  # name the report, not the folder it was assembled in
+            raise os_error(err, out / "index.html", "cannot write the report") from None
         if out.exists():
             old = out.parent / f".{out.name}.old-{os.getpid()}"
             os.rename(out, old)
@@ -75,6 +80,16 @@ def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = Non
     return out / "index.html"
 
 
+def warnings_list(run: Run) -> str:
+    """The warnings stored with the results (a degenerate descriptor...), or nothing."""
+    lines = result_warnings(run.rows)
+    if not lines:
+        return ""
+    items = "".join(f"<li>{html.escape(line)}</li>" for line in lines)
+    return ("<div class='warnings'><p><b>Warnings that qualify these results</b></p>"
+            f"<ul>{items}</ul></div>")
+
+
 def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
     """The page's HTML text."""
     sequence = run.config.get("sequence") or run.metrics.get("sequence") or {}
@@ -85,7 +100,7 @@ def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
         f"<p class='meta'>sequence {html.escape(str(sequence.get('name')))} "
         f"({sequence.get('n_frames')} frames) &middot; liris {version}"
         f" &middot; created {html.escape(str(run.metrics.get('created')))}</p>",
-        "<h2>Metrics</h2>", metrics_table(run),
+        "<h2>Metrics</h2>", metrics_table(run), warnings_list(run),
         "<h2>Conventions</h2>", "<ul>" + "".join(
             f"<li>{html.escape(line)}</li>" for line in conventions_lines(run.conventions,
                                                                           run.config)) + "</ul>",
@@ -169,9 +184,10 @@ def pr_figure(run: Run, protocol: int, go):
 
 
 def trajectory_figure(run: Run, go):
-    """The path in the ground plane with TP / FP / missed-revisit markers per descriptor."""
+    """The path in the ground plane with the protocol 1 outcomes of each descriptor."""
     from lidar_iris_eval.evaluation.ground_truth import ground_plane_axes
-    from lidar_iris_eval.plotting.trajectory import as_bool, outcomes
+    from lidar_iris_eval.plotting.style import OUTCOME_COLORS
+    from lidar_iris_eval.plotting.trajectory import OUTCOME_LABELS, outcome_counts, outcomes
 
     frame = run.conventions.get("pose_frame", "camera")
     a, b = ground_plane_axes(frame if frame in ("camera", "lidar") else "camera")
@@ -179,9 +195,10 @@ def trajectory_figure(run: Run, go):
     fig = go.Figure()
     fig.add_trace(go.Scatter(x=xy[:, 0], y=xy[:, 1], mode="lines", name="path",
                                line={"color": "#aaaaaa", "width": 1}, hoverinfo="skip"))
-    styles = {"tp": ("true positive", "circle", "#009E73"),
-              "fp": ("false positive", "x", "#D55E00"),
-              "missed": ("missed revisit", "circle-open", "#0072B2")}
+    # the same four outcomes, labels and counts as trajectory.png (plotting/trajectory.py):
+    # a wrong match on a revisit query is not a false alarm, so TP + wrong + missed = revisits
+    symbols = {"tp": "circle", "wrong": "triangle-up-open", "missed": "circle-open",
+               "false_alarm": "x"}
     for k, name in enumerate(run.descriptors(1)):
         row = run.row(1, name)
         threshold = row.get("f1_threshold")
@@ -189,14 +206,15 @@ def trajectory_figure(run: Run, go):
         if threshold is None:
             threshold = -np.inf
         result = outcomes(matches, float(threshold))
-        revisit = np.zeros(len(xy), dtype=bool)
-        revisit[matches["query"].to_numpy(dtype=np.int64)[as_bool(matches["is_revisit"])]] = True
-        for kind, (label, symbol, color) in styles.items():
+        counts = outcome_counts(result)
+        for kind, label in OUTCOME_LABELS.items():
             idx = np.asarray(getattr(result, kind), dtype=np.int64)
             fig.add_trace(go.Scatter(
                 x=xy[idx, 0], y=xy[idx, 1], mode="markers", legendgroup=name,
-                name=f"{name}: {label} ({len(idx)})", visible=True if k == 0 else "legendonly",
-                marker={"symbol": symbol, "color": color, "size": 6 if kind != "tp" else 4},
+                name=f"{name}: {label} ({counts[kind]})",
+                visible=True if k == 0 else "legendonly",
+                marker={"symbol": symbols[kind], "color": OUTCOME_COLORS[kind],
+                        "size": 6 if kind != "tp" else 4},
                 text=[f"query {i}" for i in idx], hoverinfo="text"))
     axis = "xyz"
     fig.update_layout(xaxis={"title": f"{axis[a]} (m, {frame} frame)"},

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from lidar_iris_eval.atomic import atomic_path
+from lidar_iris_eval.atomic import atomic_save_figure
 from lidar_iris_eval.runs.reader import Run
 from lidar_iris_eval.runs.table import table_row
 
@@ -133,12 +133,37 @@ def _difference(value: Any, base: Any) -> Any:
 
 
 def count_differences(rows: list[dict[str, Any]], labels: list[str]) -> int:
-    """Metric values that are not identical to the first run's (undefined on one side counts)."""
-    n = 0
+    """Comparable metric values (defined in both runs) that differ from the first run's."""
+    return difference_counts(rows, labels)[0]
+
+
+def difference_counts(rows: list[dict[str, Any]], labels: list[str]) -> tuple[int, int, int]:
+    """``(differ, comparable, one_sided)`` over every later run's values against the first's.
+
+    A value is comparable when both runs define it; one that only one run has (a
+    descriptor or protocol the other run lacks, or an undefined metric) is counted
+    apart, never as a difference.
+    """
+    differ = comparable = one_sided = 0
     for row in rows:
         base = row[labels[0]]
-        n += sum(row[label] != base for label in labels[1:])
-    return n
+        for label in labels[1:]:
+            value = row[label]
+            if value is None and base is None:
+                continue
+            if value is None or base is None:
+                one_sided += 1
+                continue
+            comparable += 1
+            differ += value != base
+    return differ, comparable, one_sided
+
+
+def difference_summary(rows: list[dict[str, Any]], labels: list[str]) -> str:
+    """``"N metric value(s) differ from A (of M comparable; K in one run only)"``."""
+    differ, comparable, one_sided = difference_counts(rows, labels)
+    text = f"{differ} metric value(s) differ from {labels[0]} (of {comparable} comparable"
+    return text + (f"; {one_sided} defined in one run only)" if one_sided else ")")
 
 
 def plot_pr_overlay(runs: Sequence[Run], out: str | os.PathLike) -> Path:
@@ -165,12 +190,22 @@ def plot_pr_overlay(runs: Sequence[Run], out: str | os.PathLike) -> Path:
         ax.set(xlim=(0, 1.02), ylim=(0, 1.02), xlabel="recall", ylabel="precision",
                title=f"protocol {protocol}")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower left")
-    fig.tight_layout()
-    out = Path(out)
+    # the legend goes below the panels, never over the curves
+    handles, names = axes[0][0].get_legend_handles_labels()
+    for ax in axes[0][1:]:
+        for h, n in zip(*ax.get_legend_handles_labels(), strict=True):
+            if n not in names:
+                handles.append(h)
+                names.append(n)
+    if handles:
+        fig.legend(handles, names, fontsize=7, loc="lower center",
+                   ncol=max(1, min(3, len(names))), frameon=False)
+        rows = math.ceil(len(names) / max(1, min(3, len(names))))
+        fig.tight_layout(rect=(0, min(0.5, 0.05 + 0.045 * rows), 1, 1))
+    else:
+        fig.tight_layout()
     try:
-        with atomic_path(out, suffix=out.suffix or ".png") as tmp:
-            fig.savefig(tmp, dpi=120)
+        atomic_save_figure(fig, Path(out), "--plot", dpi=120)
     finally:
         plt.close(fig)
-    return out
+    return Path(out)

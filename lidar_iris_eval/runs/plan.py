@@ -33,7 +33,7 @@ from typing import Any
 
 import yaml
 
-from lidar_iris_eval.atomic import write_atomic
+from lidar_iris_eval.atomic import atomic_write
 from lidar_iris_eval.errors import LirisError
 
 SUMMARY_COLUMNS = ("sequence", "protocol", "descriptor", "preset", "ap", "f1_max", "r100p", "ep",
@@ -170,5 +170,5 @@ def summary_csv(rows: list[dict]) -> str:
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (:func:`lidar_iris_eval.atomic.write_atomic`)."""
-    write_atomic(path, text)
+    """Write ``text`` to ``path`` atomically (:func:`lidar_iris_eval.atomic.atomic_write`)."""
+    atomic_write(path, text)

@@ -23,6 +23,7 @@ import pandas as pd
 import yaml
 
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.runs.schema import check_metrics
 
 #: columns a reader of each table relies on (more may be present)
 PR_COLUMNS = ("threshold", "precision", "recall")
@@ -308,11 +309,7 @@ def load_run(path: str | Path) -> Run:
                                      "give one of its NN-<sequence>/ run folders")
         raise LirisError(folder, "not a run folder: no metrics.json (written by liris eval)")
     metrics = _load_json(metrics_path)
-    if not isinstance(metrics, dict) or not isinstance(metrics.get("results"), list):
-        raise LirisError(metrics_path, "no 'results' list; not written by liris eval")
-    for row in metrics["results"]:
-        if not isinstance(row, dict) or "protocol" not in row or "descriptor" not in row:
-            raise LirisError(metrics_path, "every result needs 'protocol' and 'descriptor'")
+    check_metrics(metrics, metrics_path)  # one schema check (runs/schema.py)
     config: dict[str, Any] = {}
     config_path = folder / "config.yaml"
     if config_path.is_file():

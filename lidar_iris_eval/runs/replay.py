@@ -23,6 +23,7 @@ from typing import Any
 import yaml
 
 from lidar_iris_eval import __version__
+from lidar_iris_eval.config import AnyMapping, OneOf, check_schema
 from lidar_iris_eval.errors import LirisError
 
 #: ``open_sequence`` keyword (as stored in config.yaml) -> ``liris eval`` parameter name
@@ -32,6 +33,29 @@ READER_PARAMS = {
     "pose_topic": "pose_topic", "stamps": "stamps", "tolerance": "tolerance",
     "frames": "frames", "every": "every", "min_distance": "min_distance",
     "dataset": "dataset", "scene": "scene",
+}
+
+
+#: what ``config.yaml`` may hold; unknown keys and wrong types are errors (as in --plan files)
+RUN_CONFIG_SCHEMA: dict[str, Any] = {
+    "version": str,
+    "sequence": {"path": str, "name": str, "n_frames": int, "fingerprint": str,
+                 "reader_options": AnyMapping},
+    "descriptors": [{"name": str, "preset": str, "params": AnyMapping}],
+    "protocols": [OneOf(1, 2, "1", "2")],
+    "radius": float,
+    "exclude": {"value": (int, None), "preset": (str, None), "seconds": (float, None)},
+    "recall_denominator": OneOf("revisits", "accepted"),
+    "distance": OneOf("3d", "planar"),
+    "pose_frame": OneOf("camera", "lidar"),
+    "candidates": (int, None),
+    "block_pairs": int,
+    "sensor": (str, None),
+    "command": AnyMapping,
+    "convention": AnyMapping,
+    "engine": {"scheduler": OneOf("processes", "local", accept=lambda v: isinstance(v, str)
+                                  and "://" in v, text="processes, local or tcp://HOST:PORT"),
+               "workers": (int, None)},
 }
 
 
@@ -68,7 +92,9 @@ def read_config(path: str | os.PathLike) -> dict[str, Any]:
     try:
         config = yaml.safe_load(path.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as err:
-        raise LirisError(path, f"not valid YAML ({err})") from None
+        raise LirisError(path, f"not valid YAML ({' '.join(str(err).split())})") from None
+    if isinstance(config, dict):
+        check_schema(config, RUN_CONFIG_SCHEMA, path)
     if not isinstance(config, dict) or "sequence" not in config or "descriptors" not in config:
         raise LirisError(path, "not a liris run config (no 'sequence' or 'descriptors')")
     return config

@@ -193,6 +193,8 @@ def _flatten(row: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     for key, value in row.items():
         if isinstance(value, dict):
             flat.update(_flatten(value, f"{prefix}{key}."))
+        elif isinstance(value, list) and all(isinstance(v, str) for v in value):
+            flat[f"{prefix}{key}"] = "; ".join(value)  # e.g. warnings
         else:
             flat[f"{prefix}{key}"] = value
     return flat

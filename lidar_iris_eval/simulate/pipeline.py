@@ -9,6 +9,8 @@ number of frames does not reshuffle the world.
 from __future__ import annotations
 
 import dataclasses
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +20,8 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from lidar_iris_eval import __version__
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 from lidar_iris_eval.simulate import labels
 from lidar_iris_eval.simulate.presets import SimConfig, resolve_config
 from lidar_iris_eval.simulate.raycast import Primitives
@@ -35,10 +39,11 @@ from lidar_iris_eval.simulate.trajectories import (
 )
 from lidar_iris_eval.simulate.world import World, WorldParams, build_world
 from lidar_iris_eval.simulate.writer import (
+    check_out_dir,
     default_tr,
     prepare_out_dir,
+    publish,
     read_tr,
-    remove_stale,
     write_metadata,
     write_scan,
 )
@@ -171,13 +176,40 @@ def run_simulation(
     out_dir: str | Path, cfg: SimConfig, overwrite: bool = False, progress: bool = False,
     preset: str | None = None,
 ) -> SimReport:
-    """Simulate ``cfg`` into ``out_dir`` (see :func:`simulate_sequence`)."""
+    """Simulate ``cfg`` into ``out_dir`` (see :func:`simulate_sequence`).
+
+    The sequence is built in a temporary folder beside ``out_dir``
+    (``.<name>.tmp-<host>-<pid>-…``) and moved into place only when complete, so
+    an interrupted or failed run leaves no partial sequence under ``out_dir``
+    (and its temporary folder is removed by the next run once its process is
+    gone). ``manifest.json`` is written last: a folder without it is not a
+    finished simulation.
+    """
     out_dir = Path(out_dir)
     if cfg.trajectory is not None and cfg.frames is None:
         cfg = dataclasses.replace(cfg, frames=len(read_kitti_poses(cfg.trajectory)))
-    prepare_out_dir(out_dir, overwrite)
+    check_out_dir(out_dir, overwrite)
     start = time.perf_counter()
-    scen = build_scenario(cfg)
+    scen = build_scenario(cfg)  # before any folder exists: a bad option leaves nothing
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(out_dir.parent)
+    work = Path(tempfile.mkdtemp(prefix=temp_prefix(out_dir.name or "sim"), dir=out_dir.parent))
+    try:
+        prepare_out_dir(work, overwrite=True)
+        report = _simulate_into(work, out_dir, cfg, scen, progress, preset, start)
+        publish(work, out_dir)
+    except LirisError as err:  # name the file the user asked for, not its temporary folder
+        source = err.source or ""
+        if source.startswith(str(work)):
+            raise LirisError(str(out_dir) + source[len(str(work)):], err.problem) from None
+        raise
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return report
+
+
+def _simulate_into(work: Path, out_dir: Path, cfg: SimConfig, scen: Scenario, progress: bool,
+                   preset: str | None, start: float) -> SimReport:
     n = len(scen.poses)
     dirs = scen.sensor.grid.directions
     total_points = 0
@@ -185,10 +217,9 @@ def run_simulation(
         rng = np.random.default_rng([cfg.seed, _NOISE, i])
         scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(i), scen.poses[i],
                              rng, dirs)
-        write_scan(out_dir, i, scan.points, scan.intensity, scan.label,
+        write_scan(work, i, scan.points, scan.intensity, scan.label,
                    scen.object_ids(i, scan.row))
         total_points += len(scan.points)
-    remove_stale(out_dir, n)
     revisits = revisit_queries(scen.poses[:, :3, 3])
     camera_poses = scen.tr @ scen.poses @ np.linalg.inv(scen.tr)  # as written to poses.txt
     revisits_camera = revisit_queries(camera_poses[:, :3, 3])
@@ -207,7 +238,7 @@ def run_simulation(
         "classes": {str(k): v for k, v in labels.CLASS_NAMES.items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
-    write_metadata(out_dir, scen.poses, scen.tr, manifest)
+    write_metadata(work, scen.poses, scen.tr, manifest)
     return SimReport(out_dir, cfg, n, total_points, len(revisits), time.perf_counter() - start,
                      int(len(revisits_camera)))
 

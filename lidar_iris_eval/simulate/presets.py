@@ -53,10 +53,19 @@ PRESETS: dict[str, dict] = {
 }
 
 
+#: the finest azimuth grid accepted: 0.01 deg (36,000 rays a beam and turn; real sensors
+#: use 512..4096); beyond it one scan would need gigabytes of rays
+MAX_AZIMUTH_STEPS = 36_000
+#: the longest sequence accepted (KITTI 00 has 4,541 scans)
+MAX_FRAMES = 1_000_000
+#: NumPy's generators take non-negative seeds
+MAX_SEED = 2**63 - 1
+
+
 def resolve_config(preset: str | None, overrides: dict) -> SimConfig:
     """The preset's values with ``overrides`` (``None`` values are ignored) on top."""
     if preset is not None and preset not in PRESETS:
-        raise LirisError("--preset", f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+        raise LirisError(f"--world {preset}", f"unknown world; choose from {', '.join(PRESETS)}")
     values = dict(PRESETS.get(preset, {}) if preset else {})
     fields = {f.name for f in dataclasses.fields(SimConfig)}
     for key, value in overrides.items():
@@ -84,8 +93,14 @@ def _check(cfg: SimConfig) -> None:
                          f"{', '.join(SENSORS)}")
     if cfg.route not in ROUTES:
         raise LirisError("--route", f"unknown route {cfg.route!r}; choose from {', '.join(ROUTES)}")
-    if cfg.azimuth_steps is not None and cfg.azimuth_steps < 8:
-        raise LirisError("--azimuth-steps", f"must be at least 8, got {cfg.azimuth_steps}")
+    if cfg.azimuth_steps is not None and not 8 <= cfg.azimuth_steps <= MAX_AZIMUTH_STEPS:
+        raise LirisError("--azimuth-steps", f"must be within 8..{MAX_AZIMUTH_STEPS} (0.01 deg "
+                                            f"steps), got {cfg.azimuth_steps}")
+    if cfg.frames is not None and cfg.frames > MAX_FRAMES:
+        raise LirisError("--frames", f"at most {MAX_FRAMES:,} scans, got {cfg.frames:,}")
+    if not 0 <= cfg.seed <= MAX_SEED:
+        raise LirisError("--seed", f"must be within 0..2**63-1 (NumPy seeds are non-negative), "
+                                   f"got {cfg.seed}")
     if min(cfg.blocks) < 1 or cfg.block_size[0] < 15 or cfg.block_size[1] < cfg.block_size[0]:
         raise LirisError(None, "blocks must be >= 1 and block sizes at least 15 m (min <= max)")
     if not 0 <= cfg.lateral_max <= 3:

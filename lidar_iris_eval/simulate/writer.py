@@ -16,11 +16,12 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error
 
 
 def default_tr() -> np.ndarray:
@@ -90,10 +91,51 @@ def times_text(n: int, dt: float = 0.1) -> str:
 
 def atomic_write(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` via a temporary file and :func:`os.replace`."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-    os.replace(tmp, path)
+    from lidar_iris_eval.atomic import atomic_write as write
+
+    write(path, data, what="simulated file")
+
+
+def check_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """Refuse a file, or a non-empty folder without ``overwrite``; creates nothing."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise LirisError(out_dir, "exists and is not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
+    check_writable_dir(out_dir.parent if str(out_dir.parent) else Path("."),
+                       "folder for the simulated sequence")
+
+
+#: what a finished simulation consists of; manifest.json is moved last (the completion mark)
+PUBLISHED = ("velodyne", "labels", "object_ids", "poses.txt", "times.txt", "calib.txt",
+             "manifest.json")
+
+
+def publish(work: Path, out_dir: Path) -> None:
+    """Move the complete sequence built in ``work`` to ``out_dir``.
+
+    An absent or empty ``out_dir`` is replaced in one rename. A non-empty one
+    (``--overwrite``) loses its ``manifest.json`` first, so until the last
+    rename it is visibly unfinished; each part is then swapped in whole.
+    """
+    try:
+        if not out_dir.exists() or (out_dir.is_dir() and not any(out_dir.iterdir())):
+            os.replace(work, out_dir)
+            return
+        (out_dir / "manifest.json").unlink(missing_ok=True)
+        for name in PUBLISHED:
+            new, target = work / name, out_dir / name
+            if not new.exists():
+                continue
+            if target.is_dir():
+                aside = out_dir / f".{name}.old-{os.getpid()}"
+                os.replace(target, aside)
+                os.replace(new, target)
+                shutil.rmtree(aside, ignore_errors=True)
+            else:
+                os.replace(new, target)
+    except OSError as err:
+        raise os_error(err, out_dir, "cannot move the simulated sequence into place") from None
 
 
 def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:

@@ -142,10 +142,16 @@ def load_external(name: str, path: str | Path, n_frames: int, metric: str | None
     path = Path(path)
     if not path.is_file():
         raise LirisError(path, "external descriptor file not found")
+    if path.suffix.lower() != ".npy":
+        raise LirisError(path, "external descriptors must be one .npy array (N, D) or (N, N); "
+                               "save with numpy.save (an .npz holds several arrays)")
     try:
         array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError, EOFError) as err:
         raise LirisError(path, f"not a readable .npy file ({err})") from None
+    if not isinstance(array, np.ndarray):
+        raise LirisError(path, "not a .npy array (an .npz archive?); save one array with "
+                               "numpy.save")
     if array.dtype.kind not in "fiu" or array.ndim != 2:
         raise LirisError(path, f"expected a numeric (N, D) array or (N, N) distance matrix, "
                                f"got {array.dtype} {array.shape}")

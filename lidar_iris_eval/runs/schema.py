@@ -1,0 +1,89 @@
+"""What a run's ``metrics.json`` must hold: one check, applied when a run is read.
+
+``show``, ``compare``, ``plot`` and ``report`` all read runs through
+:func:`lidar_iris_eval.runs.reader.load_run`, which calls :func:`check_metrics`
+first, so a hand-edited or foreign file (``"ap": "high"``, ``"protocol":
+"one"``) is one error naming the file and the key, not a traceback deep in a
+table or a figure.
+
+Rules:
+
+* ``results`` is a list of mappings, each with ``protocol`` 1 or 2 and a
+  non-empty text ``descriptor`` (``preset`` is text when present);
+* a metric (:data:`NUMBER_KEYS`, or a key with a prefix of
+  :data:`NUMBER_PREFIXES`) is a finite number or null (undefined, never 0);
+* ``conventions`` and ``sequence`` are mappings when present;
+* a result's ``warnings`` (the warnings that qualify its numbers, e.g. a
+  degenerate descriptor, see :mod:`lidar_iris_eval.descriptors.sanity`) is a
+  list of text when present; :func:`result_warnings` lists them for ``show``,
+  ``compare`` and ``report``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from lidar_iris_eval.errors import LirisError
+
+#: result keys that hold a number (or null)
+NUMBER_KEYS = frozenset({
+    "ap", "f1_max", "f1_threshold", "r100p", "ep", "p_at_lowest_recall",
+    "extract_ms_per_scan", "match_ms_per_query", "match_us_per_pair",
+})
+#: result keys starting with one of these hold a number (or null) too
+NUMBER_PREFIXES = ("n_", "top1_", "recall_at_", "rre_", "rte_")
+
+
+def is_number_key(key: str) -> bool:
+    """True for the result keys that must hold a number or null."""
+    return key in NUMBER_KEYS or key.startswith(NUMBER_PREFIXES)
+
+
+def check_metrics(metrics: Any, path: str | Path) -> None:
+    """Raise one :class:`LirisError` naming ``path`` and the key when ``metrics`` is malformed."""
+    if not isinstance(metrics, dict) or not isinstance(metrics.get("results"), list):
+        raise LirisError(path, "no 'results' list; not written by liris eval")
+    for k, row in enumerate(metrics["results"]):
+        where = f"results[{k}]"
+        if not isinstance(row, dict) or "protocol" not in row or "descriptor" not in row:
+            raise LirisError(path, "every result needs 'protocol' and 'descriptor'")
+        protocol = row["protocol"]
+        if isinstance(protocol, bool) or protocol not in (1, 2):
+            raise LirisError(path, f"{where}.protocol: expected 1 or 2, got {protocol!r}")
+        if not isinstance(row["descriptor"], str) or not row["descriptor"]:
+            raise LirisError(path, f"{where}.descriptor: expected a name, got "
+                                   f"{row['descriptor']!r}")
+        if "preset" in row and not isinstance(row["preset"], (str, type(None))):
+            raise LirisError(path, f"{where}.preset: expected text, got {row['preset']!r}")
+        warnings = row.get("warnings", [])
+        if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
+            raise LirisError(path, f"{where}.warnings: expected a list of text, got "
+                                   f"{warnings!r}")
+        for key, value in row.items():
+            if is_number_key(key) and not _number_or_null(value):
+                raise LirisError(path, f"{where}.{key}: expected a number or null, got "
+                                       f"{value!r}")
+    for key in ("conventions", "sequence"):
+        if key in metrics and not isinstance(metrics[key], dict):
+            raise LirisError(path, f"{key}: expected a mapping, got {metrics[key]!r}")
+
+
+def result_warnings(rows: list[dict[str, Any]]) -> list[str]:
+    """``"<descriptor>: <warning>"`` once per descriptor and warning, in row order."""
+    out: list[str] = []
+    for row in rows:
+        for text in row.get("warnings") or []:
+            line = f"{row.get('descriptor')}: {text}"
+            if line not in out:
+                out.append(line)
+    return out
+
+
+def _number_or_null(value: Any) -> bool:
+    if value is None:
+        return True
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    return math.isfinite(value)
