@@ -55,7 +55,7 @@ DEFAULT_DESCRIPTORS = "lidar-iris,scan-context,m2dp,esf"
 #: result fields that are timings or run facts, not metrics
 TIMING_FIELDS = {"extract_ms_per_scan", "match_ms_per_query", "match_us_per_pair",
                  "match_source"}
-_BAR = re.compile(r"^\s*([A-Za-z0-9+_:.-]+(?: matching)?):\s")
+_BAR = re.compile(r"^\s*([A-Za-z0-9+_:.,-]+(?: matching)?):\s")
 
 
 def liris_command() -> list[str]:
