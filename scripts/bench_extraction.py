@@ -19,7 +19,7 @@ never as a ratio (``liris bench --cpp DIR`` times your own build in the run).
 Previous routes: Scan Context's sort-based voxel grid and the batched
 ``pairwise`` for one pair; M2DP's ``atan2`` route (float64 aligned cloud,
 float32 ``arctan2``, compiled binning: the previous release's default); ESF's
-``trace_lines_numpy``.
+``trace_lines_numpy``, ``normalise_numpy`` and ``sample_triangles_previous``.
 """
 
 from __future__ import annotations
@@ -57,8 +57,21 @@ def previous(name: str):
         module, attr, old = sc_module.voxel, "voxel_centroids", lambda *a, **k: None
     elif name == "m2dp":  # the atan2 route (route: atan2), which the fast route replaced
         module, attr, old = m2dp_module, "fast_route_applies", lambda params: False
-    else:
-        module, attr, old = esf_module, "trace_lines", esf_module.trace_lines_numpy
+    else:  # NumPy tracing, NumPy normalisation, geometry recomputed for kept triplets
+        swaps = [(esf_module, "trace_lines", esf_module.trace_lines_numpy),
+                 (esf_module, "normalise", esf_module.normalise_numpy),
+                 (esf_module, "sample_triangles", esf_module.sample_triangles_previous)]
+        with contextlib.ExitStack() as stack:
+            for module, attr, old in swaps:
+                stack.enter_context(_swapped(module, attr, old))
+            yield
+        return
+    with _swapped(module, attr, old):
+        yield
+
+
+@contextlib.contextmanager
+def _swapped(module, attr, old):
     new = getattr(module, attr)
     setattr(module, attr, old)
     try:
