@@ -127,8 +127,8 @@ def config_extra(convention=None) -> dict:
 
 def extract_all(seq, descriptors, cache, workers: int, quiet: bool, executor=None):
     """One DescriptorDB per descriptor: extracted (or cached) ones and external files."""
-    from lidar_iris_eval.descriptors.external import ExternalDescriptor, external_database
-    from lidar_iris_eval.extract import extract_many
+    from lidar_iris_eval.descriptors.external import ExternalDescriptor
+    from lidar_iris_eval.extract import external_database, extract_many
 
     own = [d for d in descriptors if not isinstance(d, ExternalDescriptor)]
     extracted = iter(extract_many(seq, own, cache=cache, workers=workers, progress=not quiet,
