@@ -141,9 +141,11 @@ def test_failing_driver_and_bad_folder_are_one_line_errors(tmp_path):
     with pytest.raises(LirisError, match="no driver: expected an executable named one of"):
         find_drivers(tmp_path / "cpp")  # only 'fail-driver' there
     runner = CliRunner()
-    result = runner.invoke(cli, ["bench", "--cpp", str(tmp_path / "missing"), "-q"])
-    assert result.exit_code == 2
-    assert "missing: no such folder (--cpp)" in result.output
+    result = runner.invoke(cli, ["bench", "--cpp", str(tmp_path / "missing"), "-q",
+                                 "--work-dir", str(tmp_path / "work")])
+    assert isinstance(result.exception, LirisError)  # the entry point prints it, exit 2
+    assert str(result.exception).endswith("missing: no such folder (--cpp)")
+    assert not (tmp_path / "work").exists()  # refused before simulating anything
 
 
 def test_cli_cpp_table_is_measured_in_the_run(tmp_path):

@@ -124,6 +124,9 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
     if json_path is not None and json_path != "-":
         check_output_file(json_path, "--json-out")  # before the benchmark, not after it
     work_dir = work_dir if work_dir is not None else default_cache_dir() / "bench"
+    drivers = find_drivers(cpp_dir) if cpp_dir is not None else None  # before any work
+    if drivers is not None and not cpp_scans:
+        raise LirisError("--cpp", "needs scans to time (--cpp-scans > 0)")
 
     def log(message: str) -> None:
         if not quiet:
@@ -145,9 +148,6 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
         raise LirisError(f"--cpp-scans {cpp_scans}", "must be >= 0")
     if scans_dir is not None and not scans_dir.is_dir():
         raise LirisError(str(scans_dir), "no such folder (--scans)")
-    drivers = find_drivers(cpp_dir) if cpp_dir is not None else None
-    if drivers is not None and not cpp_scans:
-        raise LirisError("--cpp", "needs scans to time (--cpp-scans > 0)")
     seq = open_sequence(sequence)
     report = run_benchmark(seq, descriptors, work_dir, settings, progress=not quiet, log=log)
     report["argv"] = [Path(sys.argv[0]).name, *sys.argv[1:]]
