@@ -32,6 +32,7 @@ The machine is shared, so the load average is printed next to the figures.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import resource
 import time
@@ -394,6 +395,38 @@ def pairs_study(path: str, sensor: str, peaks: tuple[int, ...] = (2, 3, 4)) -> N
               f"exact {res.rate(band) * 100:5.1f} %")
 
 
+def routes_study(velodyne: str, preset: str, rounds: int = 5) -> None:
+    """Fast kernel vs the baseline route on all pairs of ~200 scans: ratio and equality."""
+    import numba
+
+    numba.set_num_threads(1)
+    desc = get_descriptor("lidar-iris", preset=preset)
+    if velodyne:
+        files = sorted(Path(velodyne).glob("*.bin"))[::23][:200]
+        db = np.stack([desc.compute(np.fromfile(f, np.float32).reshape(-1, 4)[:, :3])
+                       for f in files])
+    else:
+        db = build_database(desc, load_scans(), 200)
+    print(f"load average {os.getloadavg()[0]:.2f}; {len(db)} descriptors, {len(db) ** 2} pairs")
+    for search in ("phase+refine", "phase"):
+        p = dataclasses.replace(desc.params, shift_search=search)
+        for route in ("fast", "baseline"):
+            li.compare_blocks(db[:2], db[:2], p, route=route)
+        cpu = {"fast": [], "baseline": []}
+        out = {}
+        for _ in range(rounds):
+            for route in ("baseline", "fast"):
+                start = time.process_time()
+                out[route] = li.compare_blocks(db, db, p, route=route)
+                cpu[route].append((time.process_time() - start) / len(db) ** 2)
+        same = (np.array_equal(out["fast"][0], out["baseline"][0], equal_nan=True)
+                and np.array_equal(out["fast"][1], out["baseline"][1]))
+        old, new = (1e6 * float(np.median(cpu[r])) for r in ("baseline", "fast"))
+        print(f"{search:13s} baseline {old:6.2f} CPU-us/pair, fast {new:6.2f}, ratio "
+              f"{old / new:.2f}, bitwise equal: {same}")
+    print(f"load average {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=4541)
@@ -403,6 +436,10 @@ def main() -> None:
     parser.add_argument("--baseline-pairs", type=int, default=200)
     parser.add_argument("--no-full", action="store_true", help="skip the protocol 1/2 runs")
     parser.add_argument("--harmonics", action="store_true", help="only the harmonics study")
+    parser.add_argument("--routes", metavar="VELODYNE", nargs="?", const="",
+                        help="only the fast kernel vs the baseline route (the previous kernel), "
+                             "interleaved, CPU time, 1 thread; on the .bin scans of VELODYNE "
+                             "(every 23rd) or the perturbed real scans")
     parser.add_argument("--search", action="store_true",
                         help="only the shift-search comparison (cost ratio, misses)")
     parser.add_argument("--sensors", action="store_true",
@@ -420,6 +457,9 @@ def main() -> None:
         pairs_study(args.pairs, args.sensor)
         return
     scans = load_scans()
+    if args.routes is not None:
+        routes_study(args.routes, args.preset)
+        return
     if args.harmonics:
         harmonics_study(scans)
         return

@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 import click
-import numpy as np
 
 from lidar_iris_eval.bench import (
     DEFAULT_DESCRIPTORS,
@@ -17,7 +16,14 @@ from lidar_iris_eval.bench import (
     simulated_sequence,
     summary_rows,
 )
-from lidar_iris_eval.bench.extraction import cpp_rows, load_bin_scans, measure_against_cpp
+from lidar_iris_eval.bench.drivers import find_drivers
+from lidar_iris_eval.bench.extraction import (
+    bin_files,
+    cpp_heading,
+    cpp_rows,
+    measure_extraction,
+    read_bin,
+)
 from lidar_iris_eval.cli.options import deprecated_alias
 from lidar_iris_eval.cli.output import (
     check_output_file,
@@ -88,8 +94,12 @@ def build_bench_descriptors(text: str, preset: str | None):
               help="Run the protocols in this process (faster to start; peak memory then "
                    "includes everything before).")
 @click.option("--cpp-scans", type=int, default=4, show_default=True,
-              help="Full-resolution scans timed on one core against the authors' C++ "
-                   "figures (0: skip).")
+              help="Full-resolution scans timed on one core, per descriptor's reference "
+                   "preset (0: skip).")
+@click.option("--cpp", "cpp_dir", type=click.Path(path_type=Path), default=None,
+              help="Folder of reference drivers you built (DIR/lidar-iris, DIR/esf, ...; "
+                   "contract: docs/performance.md), timed in this run on the same scans for "
+                   "C++ ratios. Without it no ratio is printed, only published figures.")
 @click.option("--scans", "scans_dir", type=click.Path(path_type=Path, file_okay=False),
               default=None,
               help="Folder of KITTI .bin scans for the C++ comparison [default: simulated "
@@ -97,7 +107,8 @@ def build_bench_descriptors(text: str, preset: str | None):
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or status lines.")
 def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence, work_dir,
             json_path, exclude, radius, protocol_list, skip_protocol1, skip_protocol2, loop_pairs,
-            kernel_queries, workers, block_pairs, in_process, cpp_scans, scans_dir, quiet):
+            kernel_queries, workers, block_pairs, in_process, cpp_scans, cpp_dir, scans_dir,
+            quiet):
     """Time extraction, the batched kernels and protocols 1/2 of each descriptor.
 
     By default a 4541-frame sequence (KITTI 00's length) is simulated once into
@@ -115,6 +126,9 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
     if json_path is not None and json_path != "-":
         check_output_file(json_path, "--json-out")  # before the benchmark, not after it
     work_dir = work_dir if work_dir is not None else default_cache_dir() / "bench"
+    drivers = find_drivers(cpp_dir) if cpp_dir is not None else None  # before any work
+    if drivers is not None and not cpp_scans:
+        raise LirisError("--cpp", "needs scans to time (--cpp-scans > 0)")
 
     def log(message: str) -> None:
         if not quiet:
@@ -142,7 +156,8 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
     report["sequence"]["simulated"] = sim
     cpp = None
     if cpp_scans:
-        cpp = compare_with_cpp(descriptors, cpp_scans, scans_dir, work_dir, log, quiet)
+        cpp = compare_with_cpp(descriptors, cpp_scans, scans_dir, work_dir, log, quiet,
+                               drivers)
         report["cpp_comparison"] = cpp
     rows = summary_rows(report)
     report = json_ready(report)
@@ -150,13 +165,12 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
         click.echo(json.dumps(report, indent=2))
         click.echo(format_table(rows), err=True)
         if cpp is not None:
+            click.echo(cpp_heading(cpp), err=True)
             click.echo(format_table(cpp_rows(cpp)), err=True)
         return
     echo_table(rows)  # first: a failing --json write must not lose the table too
     if cpp is not None:
-        click.echo(f"\nper full-resolution scan on one core ({cpp['scans']} scans of "
-                   f"{cpp['points_median']:.0f} points, {cpp['scan_source']}), "
-                   "ratio ours / C++ (< 1: faster):")
+        click.echo("\n" + cpp_heading(cpp))
         echo_table(cpp_rows(cpp))
     for bar in report["bars"]:
         verdict = "met" if bar["met"] else "MISSED"
@@ -168,26 +182,32 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
 
 
 def compare_with_cpp(descriptors, count: int, scans_dir: Path | None, work_dir: Path, log,
-                     quiet: bool) -> dict:
-    """Time each descriptor's ``reference`` preset on full-resolution scans vs the C++."""
+                     quiet: bool, drivers: dict | None = None) -> dict:
+    """Time each descriptor's ``reference`` preset on full-resolution scans.
+
+    With ``drivers`` (``--cpp``) the user's reference builds are timed in the
+    same run on the same files; otherwise only published figures are attached.
+    """
     from lidar_iris_eval.descriptors import get_descriptor
-    from lidar_iris_eval.io import open_sequence
 
     if scans_dir is not None:
-        scans = load_bin_scans(scans_dir, count)
-        if not scans:
+        files = bin_files(scans_dir, count)
+        if not files:
             raise LirisError(str(scans_dir), "no .bin scans (--scans)")
         source = str(scans_dir)
     else:
         log(f"{count} full-resolution scans (HDL-64E, {FULL_AZIMUTH_STEPS} azimuth steps)")
         path, _ = simulated_sequence(work_dir, "kitti-scale", count, FULL_AZIMUTH_STEPS,
                                      progress=not quiet)
-        seq = open_sequence(path)
-        scans = [np.asarray(seq[i])[:, :3] for i in range(len(seq))]
+        files = bin_files(Path(path) / "velodyne", count)
         source = "simulated kitti-scale, full resolution"
+    scans = [read_bin(f) for f in files]
     names = list(dict.fromkeys(d.name for d in descriptors))
     refs = [get_descriptor(name, preset="reference") for name in names]
-    log(f"extraction and single-pair time on one core: {', '.join(names)}")
-    result = measure_against_cpp(refs, scans)
+    timed = {n: p for n, p in (drivers or {}).items() if n in names}
+    log(f"extraction and single-pair time on one core: {', '.join(names)}"
+        + (f"; C++ drivers: {', '.join(timed)}" if timed else ""))
+    result = measure_extraction(refs, scans, drivers=timed,
+                                scan_paths=[str(f.resolve()) for f in files])
     result["scan_source"] = source
     return result

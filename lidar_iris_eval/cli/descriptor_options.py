@@ -15,7 +15,7 @@ from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_options
 from lidar_iris_eval.descriptors import Descriptor, available_descriptors, get_descriptor
 from lidar_iris_eval.errors import LirisError, register_flags
-from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract
+from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract_many
 from lidar_iris_eval.io.sequence import full_scan_hashing
 from lidar_iris_eval.sensors import SENSORS
 
@@ -125,7 +125,5 @@ def run_extraction(seq, descriptors: list[Descriptor], cache_dir: Path | None, w
                    quiet: bool, chunk_size: int = DEFAULT_CHUNK_SIZE) -> list[DescriptorDB]:
     """Extract (or load) every descriptor; the cache folder is created on first write."""
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
-    return [
-        extract(seq, d, cache=cache, workers=workers, progress=not quiet, chunk_size=chunk_size)
-        for d in descriptors
-    ]
+    return extract_many(seq, descriptors, cache=cache, workers=workers, progress=not quiet,
+                        chunk_size=chunk_size)  # each scan read once for all descriptors

@@ -128,16 +128,13 @@ def config_extra(convention=None) -> dict:
 def extract_all(seq, descriptors, cache, workers: int, quiet: bool, executor=None):
     """One DescriptorDB per descriptor: extracted (or cached) ones and external files."""
     from lidar_iris_eval.descriptors.external import ExternalDescriptor
-    from lidar_iris_eval.extract import external_database, extract
+    from lidar_iris_eval.extract import external_database, extract_many
 
-    dbs = []
-    for d in descriptors:
-        if isinstance(d, ExternalDescriptor):
-            dbs.append(external_database(d, seq.name, seq.fingerprint()))
-        else:
-            dbs.append(extract(seq, d, cache=cache, workers=workers, progress=not quiet,
-                               executor=executor))
-    return dbs
+    own = [d for d in descriptors if not isinstance(d, ExternalDescriptor)]
+    extracted = iter(extract_many(seq, own, cache=cache, workers=workers, progress=not quiet,
+                                  executor=executor))  # each scan read once for all of them
+    return [external_database(d, seq.name, seq.fingerprint())
+            if isinstance(d, ExternalDescriptor) else next(extracted) for d in descriptors]
 
 
 def export_npy(dbs, folder) -> dict[str, str]:

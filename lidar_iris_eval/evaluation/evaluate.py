@@ -47,7 +47,7 @@ from lidar_iris_eval.evaluation.metrics import SUMMARY_KEYS
 from lidar_iris_eval.evaluation.protocol1 import REVERSE_DEGREES, Protocol1Result, protocol1
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result, protocol2, protocols_1_and_2
 from lidar_iris_eval.evaluation.settings import EXCLUDE_PRESETS, Settings
-from lidar_iris_eval.extract import DescriptorDB, extract
+from lidar_iris_eval.extract import DescriptorDB, extract_many
 
 __all__ = [
     "EXCLUDE_PRESETS",
@@ -244,8 +244,8 @@ def evaluate(
     forward = sequence.poses[:, :3, 0]  # LiDAR x axis: the driving direction
     started = time.perf_counter()
     if dbs is None:
-        dbs = [extract(sequence, d, cache=cache, workers=workers, progress=progress,
-                       executor=executor) for d in descriptors]
+        dbs = extract_many(sequence, descriptors, cache=cache, workers=workers,
+                           progress=progress, executor=executor)  # one read per scan
     times = getattr(sequence, "times", None) if settings.exclude_seconds is not None else None
     results = []
     for desc, db in zip(descriptors, dbs, strict=True):

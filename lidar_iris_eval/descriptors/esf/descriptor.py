@@ -104,7 +104,25 @@ def pcl_round(x: np.ndarray) -> np.ndarray:
 
 
 def normalise(points: np.ndarray) -> np.ndarray:
-    """Centre on the centroid and scale the farthest point to distance 32 (float32)."""
+    """Centre on the centroid and scale the farthest point to distance 32 (float32).
+
+    The centroid is NumPy's float64 mean; centring, the farthest distance and
+    the scaling are compiled (:func:`.kernels.centred_scaled`), bitwise equal
+    to :func:`normalise_numpy` (tested).
+    """
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.dtype not in (np.float32, np.float64):
+        return normalise_numpy(points)
+    pts = np.ascontiguousarray(pts)
+    mean = pts.astype(np.float64).mean(axis=0)
+    out, max_dist = kernels.centred_scaled(pts, mean, float(HALF))
+    if not max_dist > 0.0:
+        raise LirisError("points", "ESF needs points that are not all identical")
+    return out
+
+
+def normalise_numpy(points: np.ndarray) -> np.ndarray:
+    """The NumPy route of :func:`normalise`."""
     pts = np.asarray(points, dtype=np.float64)
     centred = pts - pts.mean(axis=0)
     max_dist = float(np.sqrt(np.max(np.einsum("ij,ij->i", centred, centred))))
@@ -240,6 +258,38 @@ def sample_triangles(points: np.ndarray, samples: int, rng: np.random.Generator)
     """Draw ``samples`` valid triplets, redrawing the ones PCL would reject.
 
     Returns ``(idx (S, 3), sides (S, 3), heron (S,), angle_bins (S, 3) int64)``,
+    in draw order. The geometry of each batch is computed once and kept for
+    the accepted triplets (element-wise float32 maths, so the values equal
+    :func:`sample_triangles_previous`, which recomputed them: tested bitwise).
+    """
+    n = len(points)
+    kept: list[tuple[np.ndarray, ...]] = []
+    have = drawn = 0
+    while have < samples:
+        if drawn >= _MAX_DRAWS_PER_SAMPLE * samples:
+            raise LirisError(
+                "points",
+                f"ESF found only {have} of {samples} non-degenerate triangles in "
+                f"{drawn} draws; the points are (nearly) coincident or collinear",
+            )
+        batch = max(1024, int(1.1 * (samples - have)))
+        idx = rng.integers(0, n, size=(batch, 3))
+        drawn += batch
+        sides, heron, angles = _triangle_geometry(*(points[idx[:, j]] for j in range(3)))
+        ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])
+        ok &= heron > MIN_HERON
+        ok &= np.isfinite(angles).all(axis=1)
+        kept.append((idx[ok], sides[ok], heron[ok], angles[ok]))
+        have += int(ok.sum())
+    idx, sides, heron, angles = (np.concatenate([k[f] for k in kept])[:samples]
+                                 for f in range(4))
+    return idx, sides, heron, angles.astype(np.int64)
+
+
+def sample_triangles_previous(points: np.ndarray, samples: int, rng: np.random.Generator):
+    """The previous route of :func:`sample_triangles` (geometry recomputed for the kept).
+
+    Returns ``(idx (S, 3), sides (S, 3), heron (S,), angle_bins (S, 3) int64)``,
     in draw order.
     """
     n = len(points)
@@ -274,8 +324,9 @@ def esf_histogram(points: np.ndarray, samples: int, rng: np.random.Generator) ->
     idx, sides, heron, angle_bins = sample_triangles(pts, samples, rng)
 
     # sides in PCL's order: 1->2, 1->3, 2->3, all lines of a triplet together
-    starts = vox[idx[:, [0, 0, 1]]].reshape(-1, 3)
-    ends = vox[idx[:, [1, 2, 2]]].reshape(-1, 3)
+    corners = vox[idx]  # one random gather of the corners' voxels, (S, 3 corners, 3)
+    starts = corners[:, [0, 0, 1]].reshape(-1, 3)
+    ends = corners[:, [1, 2, 2]].reshape(-1, 3)
     inside, count = trace_lines(starts, ends, occupied)
     line_class = classify_lines(inside, count)
     inside3, count3 = inside.reshape(-1, 3), count.reshape(-1, 3)

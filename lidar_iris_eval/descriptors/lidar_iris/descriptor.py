@@ -100,7 +100,7 @@ from typing import ClassVar
 import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.descriptors.lidar_iris import kernels
+from lidar_iris_eval.descriptors.lidar_iris import kernels, kernels_baseline
 from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.sensors import fit_warnings, sample_scans
 
@@ -495,11 +495,21 @@ def _fields(descs: np.ndarray, params: LidarIrisParams, source: str):
 DATABASE_CHUNK = 512
 
 
-def compare_blocks(queries: np.ndarray, database: np.ndarray, params: LidarIrisParams):
+#: comparison kernels by route: ``fast`` (the default) and ``baseline``, the previous
+#: kernel kept verbatim; tests assert they agree bitwise, benchmarks time one against the other
+ROUTES = {"fast": kernels, "baseline": kernels_baseline}
+
+
+def compare_blocks(queries: np.ndarray, database: np.ndarray, params: LidarIrisParams,
+                   route: str = "fast"):
     """(distances, shifts in columns) of all query/database pairs, ``(Q, M)`` each.
 
     Shift is -1 (and distance nan) when every bit of a pair is masked.
+    ``route`` picks the kernel (:data:`ROUTES`); both give bitwise-equal results.
     """
+    if route not in ROUTES:
+        raise LirisError("route", f"unknown LiDAR Iris kernel route {route!r} (fast|baseline)")
+    pair_block = ROUTES[route].pair_block
     q = _fields(queries, params, "queries")
     # queries' columns repeated twice: any column roll is then a contiguous slice
     q = (np.concatenate([q[0], q[0]], axis=2), np.concatenate([q[1], q[1]], axis=2), *q[2:])
@@ -517,7 +527,7 @@ def compare_blocks(queries: np.ndarray, database: np.ndarray, params: LidarIrisP
         whole = k == nd
         part_d = out_d if whole else np.empty((nq, k))
         part_s = out_s if whole else np.empty((nq, k), dtype=np.int64)
-        kernels.pair_block(
+        pair_block(
             *q, *d, cos_t, sin_t, p.shift_window, _MODES[p.match_mode],
             _SEARCHES[p.shift_search], p.refine_peaks, part_d, part_s,
         )  # fmt: skip
