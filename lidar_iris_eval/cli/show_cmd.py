@@ -21,8 +21,14 @@ def command(run, fmt, no_conventions):
     The table is the one `liris eval` printed for that run (same columns and
     rounding); CSV keeps full precision.
     """
+    from lidar_iris_eval.runs.loop_table import render_loop_table
+
     loaded = load_run(run)
     click.echo(render_table(loaded.rows, fmt))
+    loop_table = render_loop_table(loaded.rows, fmt)  # registration recall (issue 23)
+    if loop_table:
+        click.echo("")
+        click.echo(loop_table)
     if no_conventions:
         return
     click.echo("")

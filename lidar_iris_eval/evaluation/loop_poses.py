@@ -108,6 +108,13 @@ class LoopPoseSettings:
             parts.append(f"rmse_m <= {self.max_rmse_m:g}")
         return " and ".join(parts) if parts else None
 
+    def config(self) -> dict:
+        """The ``config.yaml`` entry (replayed by ``--config``)."""
+        return {"loop_poses": {
+            "refine": self.refine, "gt_pose": self.gt_pose,
+            "rr_thresholds": [self.rr_rte_m, self.rr_rre_deg],
+            "min_inlier_ratio": self.min_inlier_ratio, "max_rmse_m": self.max_rmse_m}}
+
     def conventions(self) -> dict:
         """The metrics.json header entries."""
         out = {
@@ -172,6 +179,8 @@ class LoopPoses:
     gt: np.ndarray
     gt_refined: RefinedPoses | None
     n_scans_prepared: int = 0
+    #: the descriptor distances before the acceptance rule
+    distance: np.ndarray | None = None
 
     def columns(self) -> dict[str, np.ndarray]:
         """Extra ``matches.csv`` columns (after the method's own ``T00..T23``)."""
@@ -182,6 +191,8 @@ class LoopPoses:
             cols["rmse_m"] = r.rmse_m
             cols["registration_s"] = r.seconds
             cols["registration_accepted"] = np.asarray(self.accepted).astype(np.int8)
+            if self.settings.acceptance_rule() is not None:  # distance is inf where rejected
+                cols["descriptor_distance"] = self.distance
             cols["refined_rre_deg"] = self.refined_rre
             cols["refined_rte_m"] = self.refined_rte
             cols.update({f"refined_{k}": v for k, v in t_columns(r.pose).items()})
@@ -216,7 +227,7 @@ def refine_loops(p1, sequence, settings: LoopPoseSettings,
         gt_refined = refine_pairs(sequence, m.query, match, gt, settings.registration,
                                   progress, cache)
     return LoopPoses(settings, refined, rre, rte, accepted, gt, gt_refined,
-                     len(cache._items))
+                     len(cache._items), np.asarray(m.distance).copy())
 
 
 def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
@@ -230,6 +241,27 @@ def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
     matches = replace(p1.matches, distance=distance)
     return score_protocol1(matches, positions, p1.gt, p1.recall_denominator, forward,
                            lidar_poses)
+
+
+def apply(p1, sequence, positions: np.ndarray, forward: np.ndarray | None,
+          settings: LoopPoseSettings, desc_name: str = "", progress: bool = False):
+    """``(protocol 1 result, LoopPoses or None)`` after the registrations ``settings`` ask for.
+
+    Without registration, or on a sequence without point clouds (n/a), ``p1``
+    is returned as is with None.
+    """
+    if not settings.registers or not has_points(sequence):
+        return p1, None
+    import sys
+
+    from tqdm import tqdm
+
+    rows = len(p1.matches.query)  # one tick per row and pass
+    total = rows * ((settings.refine is not None) + (settings.gt_pose == "refined"))
+    with tqdm(total=total, desc=f"{desc_name} registration", unit="loop", file=sys.stderr,
+              disable=not progress, leave=False) as bar:
+        loops = refine_loops(p1, sequence, settings, bar.update)
+    return rescore_with_acceptance(p1, loops, positions, forward, sequence.poses), loops
 
 
 def _summary(rre, rte, mask, prefix: str, settings: LoopPoseSettings) -> dict:

@@ -147,9 +147,10 @@ def pr_table(curve: PRCurve) -> dict[str, np.ndarray]:
     }
 
 
-def write_protocol1(run: RunWriter, descriptor: str, result: Protocol1Result) -> None:
-    """``protocol1/<descriptor>/matches.csv`` and ``pr.csv``."""
-    table = result.table()
+def write_protocol1(run: RunWriter, descriptor: str, result: Protocol1Result,
+                    extra: dict[str, np.ndarray] | None = None) -> None:
+    """``protocol1/<descriptor>/matches.csv`` (plus ``extra`` columns) and ``pr.csv``."""
+    table = {**result.table(), **(extra or {})}
     for key in ("is_revisit", "is_true", "is_reverse"):
         if key in table:
             table[key] = np.asarray(table[key]).astype(np.int8)
