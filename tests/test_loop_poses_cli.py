@@ -77,6 +77,8 @@ def test_show_prints_the_loop_table(refined_run, capsys):
     code, out, err = run_cli(["show", run], capsys)
     assert code == 0, err
     assert "refined_rr" in out and "register_ms_per_loop" in out and "rotation-only" in out
+    code, out, _ = run_cli(["show", run, "--no-conventions"], capsys)
+    assert "rotation-only" not in out  # the metrics table only
 
 
 def test_acceptance_rule_rejects_and_is_named(refined_run, tmp_path, capsys):

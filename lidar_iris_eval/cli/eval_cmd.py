@@ -80,7 +80,7 @@ register_flags({
 def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
-            loop_settings, odometry_path):
+            loop_settings, odometry_path, seeds):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
@@ -94,8 +94,9 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
     if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
-        if loop_settings.registers or odometry_path is not None:
-            raise LirisError("--refine/--gt-pose/--odometry", "apply to a single sequence only")
+        if loop_settings.registers or odometry_path is not None or seeds is not None:
+            raise LirisError("--refine/--gt-pose/--odometry/--seeds",
+                             "apply to a single sequence only")
         _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
                        cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
                        as_json, reader_options, scheduler)
@@ -126,11 +127,20 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
 
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
     with use_scheduler(check_scheduler(scheduler), workers) as engine:
-        run = evaluate(seq, descriptors, protocols, settings, cache=cache, workers=workers,
-                       progress=not quiet, convention=conv, loop_settings=loop_settings,
-                       dbs=extract_all(seq, descriptors, cache, workers, quiet))
+        def run_once(descs):
+            return evaluate(seq, descs, protocols, settings, cache=cache, workers=workers,
+                            progress=not quiet, convention=conv, loop_settings=loop_settings,
+                            dbs=extract_all(seq, descs, cache, workers, quiet))
+
+        if seeds is None:
+            run = run_once(descriptors)
+        else:  # issue 23: stochastic stages once per seed, mean and range in each row
+            from lidar_iris_eval.evaluation.seeds import evaluate_seeds
+
+            run = evaluate_seeds(run_once, descriptors, seeds)
         engine_info = engine.describe() if engine is not None else {"scheduler": scheduler}
-    extra = {**config_extra(conv), "engine": engine_info}
+    extra = {**config_extra(conv), "engine": engine_info,
+             **({"seeds": list(seeds)} if seeds is not None else {})}
     write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options, **extra)
     exported = export_loops(run, export_path, odometry) if export_path is not None else {}
     if as_json:
@@ -154,11 +164,12 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
 def print_loop_poses(run, loop_settings) -> None:
     """The loop-pose table (registration recall, refined errors, registration time), and
     one n/a line per method that has no point clouds to register."""
-    from lidar_iris_eval.runs.loop_table import render_loop_table
+    from lidar_iris_eval.runs.loop_table import render_loop_table, render_seed_table
 
-    text = render_loop_table(run.rows, table_format())
-    if text:
-        click.echo(text, err=table_format() != "table")
+    for text in (render_loop_table(run.rows, table_format()),
+                 render_seed_table(run.rows, table_format())):
+        if text:
+            click.echo(text, err=table_format() != "table")
     for row in run.rows:
         for key in ("refine_note", "gt_pose_note"):
             if row.get(key):

@@ -62,10 +62,14 @@ def loop_pose_options(func):
                   default=None,
                   help="Odometry poses (KITTI/TUM, LiDAR frame) for the .g2o vertices "
                        "[default: the sequence's poses].")
+    @click.option("--seeds", "seeds_text", default=None, metavar="S1,S2,...",
+                  help="Rerun the stochastic stages (RANSAC, PROSAC, ESF's sampling) once per "
+                       "seed; metrics.json, liris show and the PR figure report mean and range.")
     @functools.wraps(func)
     def wrapper(*args, refine, gt_pose, rr_thresholds, min_inlier_ratio, max_rmse_m,
-                odometry_path, **kwargs):
+                odometry_path, seeds_text, **kwargs):
         from lidar_iris_eval.evaluation.loop_poses import LoopPoseSettings
+        from lidar_iris_eval.evaluation.seeds import parse_seeds
 
         rte, rre = parse_pair(rr_thresholds)
         kwargs["loop_settings"] = LoopPoseSettings(
@@ -76,6 +80,7 @@ def loop_pose_options(func):
 
             check_available()
         kwargs["odometry_path"] = odometry_path
+        kwargs["seeds"] = parse_seeds(seeds_text) if seeds_text is not None else None
         return func(*args, **kwargs)
 
     return wrapper

@@ -46,6 +46,7 @@ from lidar_iris_eval.evaluation.protocol2 import Protocol2Result, protocol2, pro
 from lidar_iris_eval.evaluation.report import (
     SUMMARY_KEYS,
     RunWriter,
+    pr_table,
     write_metrics,
     write_protocol1,
     write_protocol2,
@@ -90,6 +91,8 @@ class Evaluation:
     wall_s: float
     created: str = field(default_factory=lambda: datetime.now().isoformat(timespec="seconds"))
     loop_settings: lp.LoopPoseSettings = field(default_factory=lp.LoopPoseSettings)
+    #: ``--seeds``: {(protocol, descriptor): [(seed, PRCurve)]} of stochastic methods
+    seed_curves: dict = field(default_factory=dict)
 
     @property
     def rows(self) -> list[dict]:
@@ -379,6 +382,9 @@ def write_run(evaluation: Evaluation, out: str | os.PathLike, overwrite: bool = 
             if r.protocol2 is not None:
                 write_protocol2(run, r.descriptor.name, r.protocol2)
             write_timing(run, r.descriptor.name, r.db.extract_s, r.db.read_s)
+        for (protocol, name), curves in evaluation.seed_curves.items():
+            for seed, curve in curves:
+                run.write_csv(f"protocol{protocol}/{name}/pr_seed{seed}.csv", pr_table(curve))
         run.write_yaml("config.yaml", config)
         write_metrics(run, evaluation.header(config), evaluation.rows)
         run.write_npy("poses.npy", np.asarray(poses, dtype=np.float64))

@@ -51,3 +51,32 @@ def render_loop_table(rows: Sequence[Mapping[str, Any]], fmt: str = "table") -> 
     columns = [c for c, _ in LOOP_COLUMNS
                if c in _ALWAYS or any(r.get(c) is not None for r in table)]
     return render_table(table, fmt, columns, summarize=False)
+
+
+#: metrics of the seed table, in order (those some row has)
+SEED_COLUMNS = ("ap", "f1_max", "r100p", "ep", "rr", "rte_m_median", "refined_rr",
+                "refined_rte_m_median")
+
+
+def _mean_range(block: Mapping[str, Any] | None) -> str | None:
+    if not block or block.get("mean") is None:
+        return None
+    return f"{block['mean']:.4f} [{block['min']:.4f}, {block['max']:.4f}]"
+
+
+def render_seed_table(rows: Sequence[Mapping[str, Any]], fmt: str = "table") -> str:
+    """``--seeds``: each metric as ``mean [min, max]`` over the seeds, or ``""`` without."""
+    seeded = [r for r in rows if isinstance(r.get("seeds"), Mapping)]
+    if not seeded:
+        return ""
+    metrics = [m for m in SEED_COLUMNS if any(m in r["seeds"] for r in seeded)]
+    table = []
+    for r in seeded:
+        block = r["seeds"]
+        entry = {"protocol": r.get("protocol"), "descriptor": r.get("descriptor"),
+                 "seeds": ",".join(str(s) for s in block.get("seeds", [])),
+                 "stochastic": block.get("stochastic")}
+        entry.update({m: _mean_range(block.get(m)) for m in metrics})
+        table.append(entry)
+    return render_table(table, fmt, ["protocol", "descriptor", "seeds", "stochastic", *metrics],
+                        summarize=False)
