@@ -79,3 +79,14 @@ def test_bad_seeds_flag_is_one_line(objects, tmp_path, capsys):
     code, _, err = run_cli(["eval", objects, "-d", "gosmatch", "--protocol", "1", "--seeds",
                             "1,x", "--out", tmp_path / "r", "-q"], capsys)
     assert_one_line_error(code, err, "--seeds", "integers")
+
+
+def test_config_replays_seeds_and_loop_settings(objects, tmp_path, capsys):
+    first = _eval(objects, tmp_path / "a", tmp_path / "c", capsys, "--seeds", "2,3",
+                  "--rr-thresholds", "1,3")
+    code, out, err = run_cli(["eval", "--config", tmp_path / "a" / "config.yaml", "--out",
+                              tmp_path / "b", "-q", "--json"], capsys)
+    assert code == 0, err
+    again = json.loads(out)
+    assert again["results"][0]["seeds"] == first["seeds"]
+    assert "rte_m < 1 and rre_deg < 3" in again["conventions"]["registration_recall"]
