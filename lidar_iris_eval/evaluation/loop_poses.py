@@ -231,20 +231,27 @@ def refine_loops(p1, sequence, settings: LoopPoseSettings,
 
 
 def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
-                            forward: np.ndarray | None, lidar_poses: np.ndarray):
-    """Protocol 1 again with rejected matches' distances set to ``inf`` (or ``p1`` itself)."""
+                            forward: np.ndarray | None, lidar_poses: np.ndarray,
+                            run_settings=None):
+    """Protocol 1 again with rejected matches' distances set to ``inf`` (or ``p1`` itself).
+
+    ``run_settings`` (the run's :class:`~lidar_iris_eval.evaluation.settings.Settings`)
+    carries every protocol 1 rule of the convention; without it, the standard rules and
+    ``p1``'s recall denominator.
+    """
     from lidar_iris_eval.evaluation.protocol1 import score_protocol1
 
     if loops.accepted is None or loops.settings.acceptance_rule() is None:
         return p1
     distance = np.where(loops.accepted, p1.matches.distance, np.inf)
     matches = replace(p1.matches, distance=distance)
-    return score_protocol1(matches, positions, p1.gt, p1.recall_denominator, forward,
-                           lidar_poses)
+    rules = run_settings if run_settings is not None else p1.recall_denominator
+    return score_protocol1(matches, positions, p1.gt, rules, forward, lidar_poses)
 
 
 def apply(p1, sequence, positions: np.ndarray, forward: np.ndarray | None,
-          settings: LoopPoseSettings, desc_name: str = "", progress: bool = False):
+          settings: LoopPoseSettings, desc_name: str = "", progress: bool = False,
+          run_settings=None):
     """``(protocol 1 result, LoopPoses or None)`` after the registrations ``settings`` ask for.
 
     Without registration, or on a sequence without point clouds (n/a), ``p1``
@@ -261,7 +268,8 @@ def apply(p1, sequence, positions: np.ndarray, forward: np.ndarray | None,
     with tqdm(total=total, desc=f"{desc_name} registration", unit="loop", file=sys.stderr,
               disable=not progress, leave=False) as bar:
         loops = refine_loops(p1, sequence, settings, bar.update)
-    return rescore_with_acceptance(p1, loops, positions, forward, sequence.poses), loops
+    return rescore_with_acceptance(p1, loops, positions, forward, sequence.poses,
+                                   run_settings), loops
 
 
 def _summary(rre, rte, mask, prefix: str, settings: LoopPoseSettings) -> dict:
