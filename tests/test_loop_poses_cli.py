@@ -53,7 +53,7 @@ def test_refined_pose_bar_and_matches_columns(refined_run):
         assert row["refined_rr_kind"] == "full"
         assert row["refined_rte_m_median"] < 0.2 and row["refined_rre_deg_median"] < 1.0
         assert row["refined_rr"] > 0.9
-        assert row["registration_ms_per_loop"] > 0
+        assert row["registration_ms_per_loop"] > 0 and row["registration_prepare_ms_per_scan"] > 0
         table = pd.read_csv(run / "protocol1" / name / "matches.csv")
         # the method's pose is kept (yaw-only: no translation) beside the refined one
         assert table.loc[table["match"] >= 0, "T03"].isna().all()

@@ -181,6 +181,8 @@ class LoopPoses:
     n_scans_prepared: int = 0
     #: the descriptor distances before the acceptance rule
     distance: np.ndarray | None = None
+    #: downsampling time of the ``n_scans_prepared`` scans, seconds
+    prepare_s: float = 0.0
 
     def columns(self) -> dict[str, np.ndarray]:
         """Extra ``matches.csv`` columns (after the method's own ``T00..T23``)."""
@@ -227,7 +229,7 @@ def refine_loops(p1, sequence, settings: LoopPoseSettings,
         gt_refined = refine_pairs(sequence, m.query, match, gt, settings.registration,
                                   progress, cache)
     return LoopPoses(settings, refined, rre, rte, accepted, gt, gt_refined,
-                     len(cache._items), np.asarray(m.distance).copy())
+                     cache.n_prepared, np.asarray(m.distance).copy(), cache.prepare_s)
 
 
 def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
@@ -302,7 +304,7 @@ def loop_pose_metrics(p1, loops: LoopPoses | None, settings: LoopPoseSettings,
         out.update(_summary(loops.refined_rre, loops.refined_rte, is_true, "refined_", settings))
         secs = r.seconds[np.isfinite(r.seconds)]
         out["registration_ms_per_loop"] = float(np.mean(secs) * 1e3) if len(secs) else None
-        out["registration_prepare_ms_per_scan"] = (r.prepare_s / loops.n_scans_prepared * 1e3
+        out["registration_prepare_ms_per_scan"] = (loops.prepare_s / loops.n_scans_prepared * 1e3
                                                    if loops.n_scans_prepared else None)
         out["n_registered"] = int(np.count_nonzero(r.registered))
         out["n_rejected_by_registration"] = (int(np.count_nonzero(~loops.accepted & (

@@ -245,6 +245,7 @@ class ScanCache:
         self.size = size
         self._items: OrderedDict[int, PreparedScan] = OrderedDict()
         self.prepare_s = 0.0
+        self.n_prepared = 0  # scans downsampled so far (a scan evicted and met again counts twice)
 
     def __getitem__(self, index: int) -> PreparedScan:
         index = int(index)
@@ -253,6 +254,7 @@ class ScanCache:
             return self._items[index]
         scan = PreparedScan(self.sequence[index], self.settings)
         self.prepare_s += scan.seconds
+        self.n_prepared += 1
         self._items[index] = scan
         if len(self._items) > self.size:
             self._items.popitem(last=False)
