@@ -9,8 +9,8 @@ import pytest
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.descriptors.base import yaw_to_pose
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.evaluation.loop_export import export_loop_file as export_loops
 from lidar_iris_eval.evaluation.poses import (
-    export_loops,
     pose_errors,
     relative_ground_truth,
     summarize_pose_errors,
@@ -81,9 +81,10 @@ def test_relative_ground_truth_is_query_frame():
 def test_export_loops_formats(tmp_path):
     pose = np.stack([yaw_pose(90.0, (1, 2, 3)), yaw_to_pose(np.array(90.0))])
     with pytest.warns(UserWarning, match="1 accepted loop"):
-        n = export_loops(tmp_path / "l.g2o", np.array([5, 6]), np.array([1, 2]), pose)
+        n = export_loops(tmp_path / "l.g2o", np.array([5, 6]), np.array([1, 2]), pose,
+                         vertex_poses=np.tile(np.eye(4), (7, 1, 1)))
     assert n == 1
-    line = (tmp_path / "l.g2o").read_text().split()
+    line = (tmp_path / "l.g2o").read_text().splitlines()[-1].split()
     assert line[:3] == ["EDGE_SE3:QUAT", "5", "1"]
     h = np.sqrt(0.5)
     np.testing.assert_allclose([float(v) for v in line[3:10]], [1, 2, 3, 0, 0, h, h])
@@ -93,7 +94,7 @@ def test_export_loops_formats(tmp_path):
     rows = np.loadtxt(tmp_path / "l.txt")
     np.testing.assert_allclose(rows[1, 5:], [0, 0, -h, h], atol=1e-9)  # yaw 90 -> Rz(-90)
     assert np.isnan(rows[1, 2:5]).all()
-    with pytest.raises(LirisError, match="g2o or .txt"):
+    with pytest.raises(LirisError, match="g2o, .tum, .txt"):
         export_loops(tmp_path / "l.csv", np.array([1]), np.array([0]), pose[:1])
 
 

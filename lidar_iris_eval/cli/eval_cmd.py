@@ -12,6 +12,7 @@ import click
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.descriptor_options import build_descriptors, descriptor_options, open_input
+from lidar_iris_eval.cli.loop_options import loop_pose_options, read_odometry
 from lidar_iris_eval.cli.options import current_convention, ground_truth_options
 from lidar_iris_eval.cli.output import echo_json
 from lidar_iris_eval.cli.workflow import (
@@ -45,6 +46,7 @@ register_flags({
 
 @click.command("eval")
 @workflow_options
+@loop_pose_options
 @click.argument("sequence", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--protocol", "protocols", type=click.Choice(["1", "2"]), multiple=True,
               required=True, help="1 (best match per query) or 2 (all pairs); may be repeated.")
@@ -57,8 +59,10 @@ register_flags({
               help="Retrieval depth K: protocol 1 through the descriptor's retrieval stage "
                    "(global descriptors), or K of two-stage methods [default: the method's].")
 @click.option("--export-loops", "export_path", type=click.Path(path_type=Path), default=None,
-              help="Write protocol 1's accepted loops at the F1max threshold as pose-graph "
-                   "edges: FILE.g2o (EDGE_SE3:QUAT) or FILE.txt (i j x y z qx qy qz qw).")
+              help="Write protocol 1's accepted loops at the F1max threshold: FILE.g2o (a "
+                   "pose graph: VERTEX_SE3:QUAT per frame, EDGE_SE3:QUAT per loop), FILE.tum "
+                   "(t_i t_j x y z qx qy qz qw) or FILE.txt (i j x y z qx qy qz qw); "
+                   "docs/loop-poses.md.")
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Run folder [default: results/<sequence>-<timestamp>].")
 @click.option("--overwrite", is_flag=True, help="Replace an existing run folder.")
@@ -73,7 +77,8 @@ register_flags({
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
 def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
-            export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler):
+            export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
+            loop_settings, odometry_path, seeds):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
@@ -84,6 +89,9 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
         raise LirisError(f"--workers {workers}", "must be at least 1")
     settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
     if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
+        if loop_settings.registers or odometry_path is not None or seeds is not None:
+            raise LirisError("--refine/--gt-pose/--odometry/--seeds",
+                             "apply to a single sequence only")
         _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
                        cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
                        as_json, reader_options, scheduler)
@@ -96,27 +104,38 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     if export_path is not None:
         if "1" not in protocols:
             raise LirisError(f"--export-loops {export_path}", "needs --protocol 1")
-        if export_path.suffix.lower() not in (".g2o", ".txt"):
-            raise LirisError(f"--export-loops {export_path}", "use a .g2o or .txt file name")
+        if export_path.suffix.lower() not in (".g2o", ".tum", ".txt"):
+            raise LirisError(f"--export-loops {export_path}",
+                             "use a .g2o, .tum or .txt file name")
     seq = open_input(sequence, reader_options)
     descriptors += externals_for(seq)  # --external NAME=PATH
     check_request(descriptors, protocols, settings)
     for d in descriptors:
         d.check_inputs(seq)
+    odometry = read_odometry(odometry_path, seq) if odometry_path is not None else None
     if out is None:
         out = default_run_dir(seq.name)
     check_run_dir(out, overwrite)
 
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
     with open_executor(check_scheduler(scheduler), workers) as executor:
-        run = evaluate(seq, descriptors, protocols, settings, cache=cache, workers=workers,
-                       progress=not quiet, executor=executor,
-                       dbs=extract_all(seq, descriptors, cache, workers, quiet, executor))
+        def run_once(descs):
+            return evaluate(seq, descs, protocols, settings, cache=cache, workers=workers,
+                            progress=not quiet, executor=executor, loop_settings=loop_settings,
+                            dbs=extract_all(seq, descs, cache, workers, quiet, executor))
+
+        if seeds is None:
+            run = run_once(descriptors)
+        else:  # issue 23: stochastic stages once per seed, mean and range in each row
+            from lidar_iris_eval.evaluation.seeds import evaluate_seeds
+
+            run = evaluate_seeds(run_once, descriptors, seeds)
         engine_info = (executor.describe() if executor.distributes_blocks
                        else {"scheduler": scheduler})
-    extra = {**config_extra(conv), "engine": engine_info}
+    extra = {**config_extra(conv), "engine": engine_info,
+             **({"seeds": list(seeds)} if seeds is not None else {})}
     write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options, **extra)
-    exported = export_loops(run, export_path) if export_path is not None else {}
+    exported = export_loops(run, export_path, odometry) if export_path is not None else {}
     if as_json:
         echo_json(json_ready({**run.header(run.config(sensor=sensor,
                                                       reader_options=reader_options, **extra)),
@@ -130,8 +149,24 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
         + f", {settings.distance} distance, {run.pose_frame}-frame poses, "
         f"protocol 1 recall denominator '{settings.recall_denominator}', convention "
         f"{conv.name}; results in {out}", err=table_format() != "table")
+    print_loop_poses(run, loop_settings)
     for name, (path, count) in exported.items():
         click.echo(f"{name}: {count} accepted loops written to {path}")
+
+
+def print_loop_poses(run, loop_settings) -> None:
+    """The loop-pose table (registration recall, refined errors, registration time), and
+    one n/a line per method that has no point clouds to register."""
+    from lidar_iris_eval.runs.loop_table import render_loop_table, render_seed_table
+
+    for text in (render_loop_table(run.rows, table_format()),
+                 render_seed_table(run.rows, table_format())):
+        if text:
+            click.echo(text, err=table_format() != "table")
+    for row in run.rows:
+        for key in ("refine_note", "gt_pose_note"):
+            if row.get(key):
+                click.echo(f"{row['descriptor']}: {row[key]}")
 
 
 def _evaluate_many(sequences, plan, protocols, descriptor_text, preset, params, sensor,

@@ -15,20 +15,29 @@ from lidar_iris_eval.runs.schema import result_warnings
 @click.option("--format", "fmt", type=click.Choice(FORMATS), default="table", show_default=True,
               help="Aligned table, or a Markdown / LaTeX / CSV table for a paper.")
 @click.option("--no-conventions", is_flag=True,
-              help="Print the table only (e.g. to paste it or pipe the CSV).")
+              help="Print the metrics table only, without the loop-pose and seed tables and the "
+                   "conventions (e.g. to paste it or pipe the CSV).")
 def command(run, fmt, no_conventions):
     """Print the metrics table and the conventions of the run folder RUN.
 
     The table is the one `liris eval` printed for that run (same columns and
     rounding); CSV keeps full precision.
     """
+    from lidar_iris_eval.runs.loop_table import render_loop_table, render_seed_table
+
     loaded = load_run(run)
     click.echo(render_table(loaded.rows, fmt))
     prefix = {"markdown": "- ", "latex": "% ", "csv": "# "}.get(fmt, "")
     for line in result_warnings(loaded.rows):  # stored with the numbers they qualify
         click.echo(f"{prefix}warning: {line}", err=fmt != "table")
-    if no_conventions:
+    if no_conventions:  # the metrics table (and its warnings) only
         return
+    loop_table = render_loop_table(loaded.rows, fmt)  # registration recall (issue 23)
+    seed_table = render_seed_table(loaded.rows, fmt)  # --seeds: mean [min, max]
+    for extra in (loop_table, seed_table):
+        if extra:
+            click.echo("")
+            click.echo(extra)
     click.echo("")
     for line in conventions_lines(loaded.conventions, loaded.config):
         click.echo(prefix + line)

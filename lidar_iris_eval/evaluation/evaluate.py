@@ -27,7 +27,7 @@ import platform
 import sys
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,7 @@ from lidar_iris_eval import __version__
 from lidar_iris_eval.config import params_dict
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.evaluation import loop_poses as lp
 from lidar_iris_eval.evaluation import metrics as m
 from lidar_iris_eval.evaluation import poses as pose_tools
 from lidar_iris_eval.evaluation.conventions import convention_header
@@ -68,6 +69,8 @@ class DescriptorResult:
     protocol1: Protocol1Result | None
     protocol2: Protocol2Result | None
     rows: list[dict]
+    #: registration of the protocol 1 matches (issue 23), when asked for
+    loop_poses: lp.LoopPoses | None = None
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,9 @@ class Evaluation:
     results: list[DescriptorResult]
     wall_s: float
     created: str = field(default_factory=lambda: datetime.now().isoformat(timespec="seconds"))
+    loop_settings: lp.LoopPoseSettings = field(default_factory=lp.LoopPoseSettings)
+    #: ``--seeds``: {(protocol, descriptor): [(seed, PRCurve)]} of stochastic methods
+    seed_curves: dict = field(default_factory=dict)
 
     @property
     def rows(self) -> list[dict]:
@@ -108,6 +114,7 @@ class Evaluation:
             "candidates": s.candidates,
             "block_pairs": int(s.pair_budget),
             "convention": s.to_dict(),  # Settings.from_dict rebuilds the run's ground truth
+            **self.loop_settings.config(),
         }
         for key, value in extra.items():
             if key == "reader_options":
@@ -153,6 +160,7 @@ class Evaluation:
                 "match_time": "wall time of the matching loop after an untimed warm-up call "
                               "of its kernels (compilation excluded)",
                 **convention_header(config.get("convention")),
+                **self.loop_settings.conventions(),
             },
         }
 
@@ -203,6 +211,7 @@ def evaluate(
     dbs: Sequence[DescriptorDB] | None = None,
     convention: Settings | None = None,
     executor: Any = None,
+    loop_settings: lp.LoopPoseSettings | None = None,
 ) -> Evaluation:
     """Extract and evaluate ``descriptors`` on ``sequence`` under ``settings``.
 
@@ -224,11 +233,14 @@ def evaluate(
     executor : from :func:`~lidar_iris_eval.executor.open_executor`; runs the
         extraction chunks and block passes (default: serial / a local pool of
         ``workers``).
+    loop_settings : registration recall thresholds, ``--refine``, ``--gt-pose``
+        (:mod:`~lidar_iris_eval.evaluation.loop_poses`); default: RR at 2 m / 5 deg only.
     """
     settings = Settings() if settings is None else settings
     if convention is not None:
         settings = convention.replace(candidates=settings.candidates,
                                       pair_budget=settings.pair_budget)
+    loop_settings = lp.LoopPoseSettings() if loop_settings is None else loop_settings
     descriptors = _descriptor_list(descriptors)
     protocols = check_request(descriptors, protocols, settings)
     if isinstance(sequence, (str, os.PathLike)):
@@ -249,10 +261,28 @@ def evaluate(
     times = getattr(sequence, "times", None) if settings.exclude_seconds is not None else None
     results = []
     for desc, db in zip(descriptors, dbs, strict=True):
-        results.append(_evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
-                                     settings, progress, times, executor))
+        result = _evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
+                               settings, progress, times, executor)
+        if result.protocol1 is not None:
+            result = _with_loop_poses(result, sequence, positions, forward, settings,
+                                      loop_settings, progress)
+        results.append(result)
     return Evaluation(sequence, settings, protocols, pose_frame, results,
-                      time.perf_counter() - started)
+                      time.perf_counter() - started, loop_settings=loop_settings)
+
+
+def _with_loop_poses(result: DescriptorResult, sequence, positions, forward, settings,
+                     loop_settings: lp.LoopPoseSettings, progress) -> DescriptorResult:
+    """Registration recall, and with ``--refine``/``--gt-pose refined`` the registrations
+    (issue 23): protocol 1 rescored under the acceptance rule, its row extended."""
+    p1, loops = lp.apply(result.protocol1, sequence, positions, forward, loop_settings,
+                         desc_name=result.descriptor.name, progress=progress,
+                         run_settings=settings)
+    rows = _rows(result.descriptor, result.db, p1, result.protocol2, settings) \
+        if p1 is not result.protocol1 else [dict(r) for r in result.rows]
+    rows[0].update(lp.loop_pose_metrics(p1, loops, loop_settings,
+                                        points=lp.has_points(sequence)))
+    return replace(result, protocol1=p1, rows=rows, loop_poses=loops)
 
 
 def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings, progress,
@@ -350,12 +380,18 @@ def loop_export_paths(path: str | os.PathLike, names: Sequence[str]) -> list[Pat
     return [path.with_name(f"{path.stem}-{name}{path.suffix}") for name in names]
 
 
-def export_loops(evaluation: Evaluation, path: str | os.PathLike) -> dict[str, tuple[Path, int]]:
+def export_loops(evaluation: Evaluation, path: str | os.PathLike,
+                 vertex_poses: np.ndarray | None = None) -> dict[str, tuple[Path, int]]:
     """Write each descriptor's accepted protocol 1 loops at its F1max threshold.
 
-    Returns ``{descriptor: (file, loops written)}``; see
-    :func:`~lidar_iris_eval.evaluation.poses.export_loops` for the formats.
+    Returns ``{descriptor: (file, loops written)}``; formats in
+    :mod:`~lidar_iris_eval.evaluation.loop_export`. Refined loops (``--refine``)
+    are written with their refined pose and a fitness-derived information;
+    ``.g2o`` vertices are ``vertex_poses`` (an odometry, LiDAR frame) or the
+    sequence's LiDAR-frame poses.
     """
+    from lidar_iris_eval.evaluation.loop_export import export_loop_file
+
     with_p1 = [r for r in evaluation.results if r.protocol1 is not None]
     if not with_p1:
         raise LirisError(option("export_loops", path), "loop export needs protocol 1")
@@ -368,8 +404,16 @@ def export_loops(evaluation: Evaluation, path: str | os.PathLike) -> dict[str, t
         accepted = (matches.match >= 0) & (matches.distance <= tau) if np.isfinite(tau) else \
             np.zeros(len(matches.match), bool)
         pose = p1.pose if p1.pose is not None else np.full((len(matches.match), 4, 4), np.nan)
-        written = pose_tools.export_loops(
+        ratio = rmse = None
+        refined = r.loop_poses.refined if r.loop_poses is not None else None
+        if refined is not None:
+            pose = np.where(refined.registered[:, None, None], refined.pose, pose)
+            ratio, rmse = refined.inlier_ratio[accepted], refined.rmse_m[accepted]
+        seq = evaluation.sequence
+        written = export_loop_file(
             target, matches.query[accepted], matches.match[accepted], pose[accepted],
-            getattr(evaluation.sequence, "frame_ids", None))
+            vertex_poses=seq.poses if vertex_poses is None else vertex_poses,
+            frame_ids=getattr(seq, "frame_ids", None), times=getattr(seq, "times", None),
+            inlier_ratio=ratio, rmse_m=rmse)
         out[r.descriptor.name] = (target, written)
     return out

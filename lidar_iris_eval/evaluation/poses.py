@@ -1,4 +1,5 @@
-"""Relative poses of loop closures: ground truth, errors, ``T`` columns and loop export.
+"""Relative poses of loop closures: ground truth, errors and ``T`` columns (loop export:
+``evaluation/loop_export.py``).
 
 Convention (see ``descriptors/base.py``): the pose ``T`` of a match
 ``(query i, match j)`` maps points of scan ``j``'s LiDAR frame into scan
@@ -21,14 +22,10 @@ loops a method finds, independent of the threshold. Undefined -> None.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.matching.geometry import (
     invert_pose,
-    quaternion_xyzw,
     rotation_error_deg,
     translation_error_m,
     yaw_error_deg,
@@ -36,12 +33,6 @@ from lidar_iris_eval.matching.geometry import (
 
 #: names of the 12 matches.csv columns: row-major 3x4 of T
 T_COLUMNS = tuple(f"T{r}{c}" for r in range(3) for c in range(4))
-#: g2o information matrix of exported edges (upper triangle, row-major, 21 values):
-#: identity, i.e. 1 m^-2 on translation and 1 rad^-2 on rotation — a neutral
-#: placeholder; scale it to your front end's uncertainty before optimising
-G2O_INFORMATION = tuple(
-    1.0 if r == c else 0.0 for r in range(6) for c in range(r, 6)
-)
 POSE_ERROR_RULE = (
     "over true top-1 matches; rre_deg = heading difference for yaw-only estimates "
     "(translation unknown), geodesic rotation angle for full poses; rte_m = translation "
@@ -97,46 +88,3 @@ def t_columns(pose: np.ndarray) -> dict[str, np.ndarray]:
     """The 12 ``T00..T23`` columns (row-major 3x4) of ``(Q, 4, 4)`` poses."""
     pose = np.asarray(pose, dtype=np.float64)
     return {name: pose[:, int(name[1]), int(name[2])] for name in T_COLUMNS}
-
-
-def export_loops(path: str | Path, query: np.ndarray, match: np.ndarray, pose: np.ndarray,
-                 frame_ids: np.ndarray | None = None) -> int:
-    """Write loops as pose-graph edges; returns how many were written.
-
-    ``.g2o``: ``EDGE_SE3:QUAT i j x y z qx qy qz qw`` plus the 21 upper-triangular
-    entries of :data:`G2O_INFORMATION`; loops without a translation (yaw-only
-    estimates) cannot be an SE(3) edge and are left out with a warning.
-    ``.txt``: ``i j x y z qx qy qz qw`` per loop, ``nan`` translation for
-    yaw-only estimates. ``i`` is the query, ``j`` the match (frame ids when
-    given), and the edge is the pose of ``j`` in ``i``'s LiDAR frame. Written
-    atomically.
-    """
-    path = Path(path)
-    kind = path.suffix.lower()
-    if kind not in (".g2o", ".txt"):
-        raise LirisError(path, "loop export needs a .g2o or .txt file name")
-    ids = np.arange(int(max(np.max(query, initial=0), np.max(match, initial=0))) + 1) \
-        if frame_ids is None else np.asarray(frame_ids)
-    lines, skipped = [], 0
-    for i, j, T in zip(query, match, pose, strict=True):
-        if not np.isfinite(T[:3, :3]).all():
-            skipped += 1
-            continue
-        t = T[:3, 3]
-        if kind == ".g2o" and not np.isfinite(t).all():
-            skipped += 1
-            continue
-        q = quaternion_xyzw(T)
-        nums = " ".join(f"{v:.9g}" for v in (*t, *q))
-        if kind == ".g2o":
-            info = " ".join(f"{v:g}" for v in G2O_INFORMATION)
-            lines.append(f"EDGE_SE3:QUAT {ids[i]} {ids[j]} {nums} {info}")
-        else:
-            lines.append(f"{ids[i]} {ids[j]} {nums}")
-    if skipped:
-        warn(path, f"{skipped} accepted loop(s) without a usable pose for this format were "
-                   "not written")
-    from lidar_iris_eval.atomic import atomic_write
-
-    atomic_write(path, "".join(f"{line}\n" for line in lines), what="loop file")
-    return len(lines)

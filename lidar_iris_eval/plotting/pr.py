@@ -13,6 +13,7 @@ recall of 0.9, a second panel zooms on recall ≥ 0.9, where the strong methods
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -48,6 +49,8 @@ class PRCurve:
     ap: float = math.nan
     f1_max: float = math.nan
     linestyle: str = "-"
+    #: ``--seeds``: (recall grid, lowest, highest interpolated precision over the seeds)
+    band: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def f1_scores(precision: np.ndarray, recall: np.ndarray) -> np.ndarray:
@@ -112,6 +115,10 @@ def pr_figure(curves: Sequence[PRCurve], title: str = "", legend_outside: bool =
             if len(recall) > MAX_PLOT_POINTS:
                 shown = thin_indices(recall, precision, keep=[] if best is None else [best])
             for ax, prefix in zip(axes, ("", "zoom:"), strict=False):
+                if curve.band is not None:  # the spread over seeds (issue 23)
+                    grid, low, high = curve.band
+                    ax.fill_between(grid, low, high, color=curve.color, alpha=0.25,
+                                    linewidth=0, gid=f"{prefix}band:{curve.key}")
                 ax.plot(recall[shown], precision[shown], color=curve.color,
                         linestyle=curve.linestyle, label=curve.label if not prefix else None,
                         gid=f"{prefix}pr:{curve.key}")
@@ -193,6 +200,9 @@ def run_curves(run, protocol: int, prefix: str = "", linestyle: str = "-") -> li
         if math.isnan(f1_max) and len(recall):
             f1_max = float(f1_scores(precision, recall).max())
         shown = f"{prefix}: {style.method_label(name)}" if prefix else style.method_label(name)
+        band = seed_band(run.path / f"protocol{protocol}" / name)
+        if band is not None:
+            shown += f", band: {band[3]} seeds"
         curves.append(PRCurve(
             key=f"{prefix}: {name}" if prefix else name,
             label=legend_label(shown, ap, f1_max),
@@ -202,8 +212,46 @@ def run_curves(run, protocol: int, prefix: str = "", linestyle: str = "-") -> li
             ap=ap,
             f1_max=f1_max,
             linestyle=linestyle,
+            band=None if band is None else band[:3],
         ))
     return curves
+
+
+def interpolated_precision(recall: np.ndarray, precision: np.ndarray,
+                           grid: np.ndarray) -> np.ndarray:
+    """The highest precision at recall >= each grid value (NaN beyond the curve's reach)."""
+    recall = np.asarray(recall, dtype=np.float64)
+    precision = np.asarray(precision, dtype=np.float64)
+    order = np.argsort(recall)
+    r, p = recall[order], precision[order]
+    envelope = np.maximum.accumulate(np.nan_to_num(p, nan=0.0)[::-1])[::-1]
+    at = np.searchsorted(r, grid, side="left")
+    out = np.full(len(grid), np.nan)
+    inside = at < len(r)
+    out[inside] = envelope[at[inside]]
+    return out
+
+
+def seed_band(folder, points: int = 201):
+    """``(grid, low, high, n_seeds)`` from ``pr_seed*.csv`` in ``folder`` (``--seeds``), or
+    None with fewer than two seeds."""
+    import pandas as pd
+
+    files = sorted(folder.glob("pr_seed*.csv")) if folder.is_dir() else []
+    if len(files) < 2:
+        return None
+    grid = np.linspace(0.0, 1.0, points)
+    curves = []
+    for path in files:
+        table = pd.read_csv(path)
+        curves.append(interpolated_precision(table["recall"].to_numpy(),
+                                             table["precision"].to_numpy(), grid))
+    stack = np.vstack(curves)
+    reached = np.isfinite(stack).any(axis=0)
+    with warnings.catch_warnings():  # all-NaN columns (beyond every curve) are dropped below
+        warnings.simplefilter("ignore", RuntimeWarning)
+        low, high = np.nanmin(stack, axis=0), np.nanmax(stack, axis=0)
+    return grid[reached], low[reached], high[reached], len(files)
 
 
 def protocol_title(protocol: int, exclude: int | None = None) -> str:

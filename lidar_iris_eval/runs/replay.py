@@ -146,6 +146,15 @@ def config_defaults(config: dict[str, Any]) -> dict[str, Any]:
             out[key] = config[key]
     if config.get("block_pairs") is not None:
         out["block_pairs"] = config["block_pairs"]
+    loops = config.get("loop_poses") or {}  # issue 23 (evaluation/loop_poses.py)
+    for key, param in (("refine", "refine"), ("gt_pose", "gt_pose"),
+                       ("min_inlier_ratio", "min_inlier_ratio"), ("max_rmse_m", "max_rmse_m")):
+        if loops.get(key) is not None:
+            out[param] = loops[key]
+    if loops.get("rr_thresholds"):
+        out["rr_thresholds"] = ",".join(f"{v:g}" for v in loops["rr_thresholds"])
+    if config.get("seeds"):
+        out["seeds_text"] = ",".join(str(s) for s in config["seeds"])
     for key, value in (sequence.get("reader_options") or {}).items():
         if key in READER_PARAMS:
             out[READER_PARAMS[key]] = value

@@ -48,6 +48,8 @@ def table_row(row: Mapping[str, Any]) -> dict[str, Any]:
     out["positives"] = _plain(row.get("n_positives"))
     out["extract_ms_per_scan"] = _plain(row.get("extract_ms_per_scan"))
     out["match_time"] = match_time
+    # --refine (issue 23): registration time per loop, a column only when some row has it
+    out["register_ms_per_loop"] = _plain(row.get("registration_ms_per_loop"))
     return out
 
 
@@ -79,6 +81,8 @@ def render_table(rows: Sequence[Mapping[str, Any]], fmt: str = "table",
     table = [table_row(r) if summarize else {c: _plain(r.get(c)) for c in columns}
              for r in rows]
     columns = list(columns)
+    if summarize and any(r.get("register_ms_per_loop") is not None for r in table):
+        columns.append("register_ms_per_loop")
     if fmt == "csv":
         buffer = io.StringIO()
         writer = csv.writer(buffer, lineterminator="\n")

@@ -148,9 +148,10 @@ def pr_table(curve: PRCurve) -> dict[str, np.ndarray]:
     }
 
 
-def write_protocol1(run: RunWriter, descriptor: str, result: Protocol1Result) -> None:
-    """``protocol1/<descriptor>/matches.csv`` and ``pr.csv``."""
-    table = result.table()
+def write_protocol1(run: RunWriter, descriptor: str, result: Protocol1Result,
+                    extra: dict[str, np.ndarray] | None = None) -> None:
+    """``protocol1/<descriptor>/matches.csv`` (plus ``extra`` columns) and ``pr.csv``."""
+    table = {**result.table(), **(extra or {})}
     for key in ("is_revisit", "is_true", "is_reverse"):
         if key in table:
             table[key] = np.asarray(table[key]).astype(np.int8)
@@ -225,10 +226,14 @@ def write_run(evaluation: Evaluation, out: str | os.PathLike, overwrite: bool = 
     with RunWriter(out, overwrite) as run:
         for r in evaluation.results:
             if r.protocol1 is not None:
-                write_protocol1(run, r.descriptor.name, r.protocol1)
+                write_protocol1(run, r.descriptor.name, r.protocol1,
+                                r.loop_poses.columns() if r.loop_poses is not None else None)
             if r.protocol2 is not None:
                 write_protocol2(run, r.descriptor.name, r.protocol2)
             write_timing(run, r.descriptor.name, r.db.extract_s, r.db.read_s)
+        for (protocol, name), curves in evaluation.seed_curves.items():
+            for seed, curve in curves:
+                run.write_csv(f"protocol{protocol}/{name}/pr_seed{seed}.csv", pr_table(curve))
         run.write_yaml("config.yaml", config)
         write_metrics(run, evaluation.header(config), evaluation.rows)
         run.write_npy("poses.npy", np.asarray(poses, dtype=np.float64))

@@ -1,0 +1,301 @@
+"""Refining a loop's relative pose by registering the two scans (issue 23).
+
+A loop ``(query i, match j)`` carries a pose ``T`` mapping points of scan
+``j``'s LiDAR frame into scan ``i``'s (``descriptors/base.py``). Registration
+aligns scan ``j`` (source) to scan ``i`` (target) starting from an initial
+guess and returns the refined ``T`` with its *fitness*:
+
+* the initial guess is the method's own estimate; a yaw-only estimate (LiDAR
+  Iris, Scan Context: rotation known, translation NaN) starts from that
+  rotation and zero translation; no estimate at all (M2DP, ESF) starts from
+  the identity;
+* ``gicp`` (generalized ICP) or ``icp`` (point-to-point) from the
+  ``small_gicp`` library (optional extra ``registration``), both scans voxel
+  downsampled to ``voxel_m``;
+* fitness is measured the same way for both methods, independent of the
+  library's internal cost: each downsampled source point, moved by the refined
+  pose, is an *inlier* when its nearest downsampled target point lies within
+  ``inlier_m``; ``inlier_ratio`` = inliers / source points and ``rmse_m`` =
+  root mean square of the inlier distances (NaN with no inlier);
+* ``seconds`` is the wall time of the alignment itself (downsampling, which
+  is done once per scan and cached, is excluded; it is reported apart).
+
+A scan with fewer than :data:`MIN_POINTS` points after downsampling gives a
+failed registration (pose NaN, fitness NaN), never a made-up one.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lidar_iris_eval.errors import LirisError, option
+
+#: registration methods (``--refine``)
+METHODS = ("gicp", "icp")
+#: fewest downsampled points a scan needs to be registered
+MIN_POINTS = 20
+EXTRA_HINT = "needs the optional extra: pip install 'lidar_iris_eval[registration]' (small_gicp)"
+
+
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """How scans are registered (recorded in metrics.json).
+
+    Parameters
+    ----------
+    method : ``gicp`` or ``icp`` (point-to-point).
+    voxel_m : voxel size of the downsampling, metres.
+    max_correspondence_m : largest point distance paired during the alignment.
+    max_iterations : iteration limit of the alignment.
+    inlier_m : distance below which a point counts as an inlier in the fitness.
+    neighbours : points per covariance estimate (GICP).
+    threads : threads of the alignment.
+    """
+
+    method: str = "gicp"
+    voxel_m: float = 0.25
+    max_correspondence_m: float = 1.0
+    max_iterations: int = 50
+    inlier_m: float = 0.5
+    neighbours: int = 20
+    threads: int = 1
+
+    def check(self) -> RegistrationSettings:
+        if self.method not in METHODS:
+            raise LirisError(option("refine", self.method),
+                             f"unknown registration; choose from {', '.join(METHODS)}")
+        for name in ("voxel_m", "max_correspondence_m", "inlier_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise LirisError(option("refine", self.method), f"{name} must be > 0, got {value}")
+        if self.max_iterations < 1 or self.threads < 1 or self.neighbours < 3:
+            raise LirisError(option("refine", self.method),
+                             "max_iterations and threads must be >= 1, neighbours >= 3")
+        return self
+
+    def describe(self) -> dict:
+        """The settings and the fitness rule, for metrics.json."""
+        return {
+            "method": self.method, "library": f"small_gicp {_library_version()}",
+            "voxel_m": self.voxel_m, "max_correspondence_m": self.max_correspondence_m,
+            "max_iterations": self.max_iterations, "inlier_m": self.inlier_m,
+            "neighbours": self.neighbours,
+            "initial_guess": "the method's pose; yaw-only: that rotation, zero translation; "
+                             "none: identity",
+            "fitness": f"inlier_ratio = share of downsampled source points within "
+                       f"{self.inlier_m:g} m of the target after alignment; rmse_m over "
+                       "those inliers",
+        }
+
+
+def _library():
+    try:
+        import small_gicp
+    except ImportError:
+        raise LirisError(option("refine", "gicp"), EXTRA_HINT) from None
+    return small_gicp
+
+
+def _library_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("small_gicp")
+    except PackageNotFoundError:
+        return "missing"
+
+
+def check_available() -> None:
+    """Raise the one-line error naming the extra when ``small_gicp`` is missing."""
+    _library()
+
+
+@dataclass(frozen=True)
+class Registration:
+    """One refined pose: ``pose`` (4x4, NaN when failed), fitness, time, convergence."""
+
+    pose: np.ndarray
+    inlier_ratio: float
+    rmse_m: float
+    seconds: float
+    converged: bool
+    iterations: int
+
+    @property
+    def ok(self) -> bool:
+        return bool(np.isfinite(self.pose).all())
+
+
+def failed(seconds: float = 0.0) -> Registration:
+    return Registration(np.full((4, 4), np.nan), float("nan"), float("nan"), seconds, False, 0)
+
+
+def initial_guess(pose: np.ndarray | None) -> np.ndarray:
+    """The starting pose of a registration (rules in the module docstring)."""
+    T = np.eye(4)
+    if pose is None:
+        return T
+    pose = np.asarray(pose, dtype=np.float64)
+    if np.isfinite(pose[:3, :3]).all():
+        T[:3, :3] = pose[:3, :3]
+        if np.isfinite(pose[:3, 3]).all():
+            T[:3, 3] = pose[:3, 3]
+    return T
+
+
+class PreparedScan:
+    """A scan downsampled and made ready for registration (with its k-d tree)."""
+
+    def __init__(self, points: np.ndarray, settings: RegistrationSettings):
+        sg = _library()
+        pts = np.asarray(points, dtype=np.float64)[:, :3]
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        started = time.perf_counter()
+        if len(pts) >= MIN_POINTS:
+            self.cloud, self.tree = sg.preprocess_points(
+                pts, downsampling_resolution=settings.voxel_m,
+                num_neighbors=settings.neighbours, num_threads=settings.threads)
+            self.points = np.asarray(self.cloud.points())[:, :3]
+        else:
+            self.cloud = self.tree = None
+            self.points = np.empty((0, 3))
+        self.kdtree = cKDTree(self.points) if len(self.points) >= MIN_POINTS else None
+        self.seconds = time.perf_counter() - started
+
+    @property
+    def usable(self) -> bool:
+        return self.kdtree is not None
+
+
+def fitness(source: np.ndarray, target_tree: cKDTree, T: np.ndarray,
+            inlier_m: float) -> tuple[float, float]:
+    """``(inlier_ratio, rmse_m)`` of ``source`` moved by ``T`` against the target tree."""
+    if len(source) == 0 or not np.isfinite(T).all():
+        return float("nan"), float("nan")
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    dist, _ = target_tree.query(moved, k=1, distance_upper_bound=inlier_m)
+    inliers = np.isfinite(dist)
+    ratio = float(np.count_nonzero(inliers) / len(source))
+    rmse = float(np.sqrt(np.mean(dist[inliers] ** 2))) if inliers.any() else float("nan")
+    return ratio, rmse
+
+
+def register(target: PreparedScan, source: PreparedScan, initial: np.ndarray,
+             settings: RegistrationSettings) -> Registration:
+    """Align ``source`` to ``target`` from ``initial`` (``T_target_source``)."""
+    if not (target.usable and source.usable):
+        return failed()
+    sg = _library()
+    started = time.perf_counter()
+    result = sg.align(target.cloud, source.cloud, target.tree,
+                      init_T_target_source=np.asarray(initial, dtype=np.float64),
+                      registration_type=settings.method.upper(),
+                      max_correspondence_distance=settings.max_correspondence_m,
+                      num_threads=settings.threads, max_iterations=settings.max_iterations)
+    seconds = time.perf_counter() - started
+    T = np.array(result.T_target_source, dtype=np.float64)
+    if not np.isfinite(T).all():
+        return failed(seconds)
+    ratio, rmse = fitness(source.points, target.kdtree, T, settings.inlier_m)
+    return Registration(T, ratio, rmse, seconds, bool(result.converged), int(result.iterations))
+
+
+def register_points(target_points: np.ndarray, source_points: np.ndarray,
+                    initial: np.ndarray | None = None,
+                    settings: RegistrationSettings | None = None) -> Registration:
+    """Register two raw point arrays (``(N, 3+)``): :func:`register` after preparing both."""
+    settings = (settings or RegistrationSettings()).check()
+    return register(PreparedScan(target_points, settings), PreparedScan(source_points, settings),
+                    initial_guess(initial), settings)
+
+
+@dataclass(frozen=True)
+class RefinedPoses:
+    """Registrations of many pairs, one row each (NaN rows where not registered).
+
+    ``pose (Q, 4, 4)``, ``inlier_ratio``, ``rmse_m``, ``seconds`` (alignment
+    wall time), ``converged``; ``prepare_s`` is the total downsampling time.
+    """
+
+    pose: np.ndarray
+    inlier_ratio: np.ndarray
+    rmse_m: np.ndarray
+    seconds: np.ndarray
+    converged: np.ndarray
+    prepare_s: float
+    settings: RegistrationSettings
+
+    @property
+    def registered(self) -> np.ndarray:
+        return np.isfinite(self.pose).all(axis=(1, 2))
+
+
+class ScanCache:
+    """Prepared scans of a sequence, kept for the most recent ``size`` frames."""
+
+    def __init__(self, sequence, settings: RegistrationSettings, size: int = 256):
+        self.sequence = sequence
+        self.settings = settings
+        self.size = size
+        self._items: OrderedDict[int, PreparedScan] = OrderedDict()
+        self.prepare_s = 0.0
+        self.n_prepared = 0  # scans downsampled so far (a scan evicted and met again counts twice)
+
+    def __getitem__(self, index: int) -> PreparedScan:
+        index = int(index)
+        if index in self._items:
+            self._items.move_to_end(index)
+            return self._items[index]
+        scan = PreparedScan(self.sequence[index], self.settings)
+        self.prepare_s += scan.seconds
+        self.n_prepared += 1
+        self._items[index] = scan
+        if len(self._items) > self.size:
+            self._items.popitem(last=False)
+        return scan
+
+
+def has_points(sequence) -> bool:
+    """False for sequences whose scans are not point clouds (the GOSMatch object layout)."""
+    return not getattr(sequence, "has_objects", False)
+
+
+def refine_pairs(sequence, query: np.ndarray, match: np.ndarray, initial: np.ndarray | None,
+                 settings: RegistrationSettings | None = None,
+                 progress: Callable[[int], object] | None = None,
+                 cache: ScanCache | None = None) -> RefinedPoses:
+    """Register scan ``match[k]`` to scan ``query[k]`` for every row with ``match >= 0``.
+
+    ``initial`` ``(Q, 4, 4)`` holds the starting poses (any NaN handled by
+    :func:`initial_guess`), or None for the identity everywhere.
+    """
+    settings = (settings or RegistrationSettings()).check()
+    if not has_points(sequence):
+        raise LirisError(option("refine", settings.method),
+                         "this sequence has objects, not point clouds; nothing to register")
+    _library()
+    query = np.asarray(query, dtype=np.int64)
+    match = np.asarray(match, dtype=np.int64)
+    n = len(query)
+    pose = np.full((n, 4, 4), np.nan)
+    ratio = np.full(n, np.nan)
+    rmse = np.full(n, np.nan)
+    secs = np.full(n, np.nan)
+    conv = np.zeros(n, dtype=bool)
+    cache = cache if cache is not None else ScanCache(sequence, settings)
+    before = cache.prepare_s
+    for k in range(n):
+        if match[k] >= 0:
+            start = initial_guess(None if initial is None else initial[k])
+            r = register(cache[query[k]], cache[match[k]], start, settings)
+            pose[k], ratio[k], rmse[k], secs[k], conv[k] = (r.pose, r.inlier_ratio, r.rmse_m,
+                                                            r.seconds, r.converged)
+        if progress is not None:
+            progress(1)
+    return RefinedPoses(pose, ratio, rmse, secs, conv, cache.prepare_s - before, settings)
