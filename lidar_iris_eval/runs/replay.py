@@ -56,6 +56,8 @@ RUN_CONFIG_SCHEMA: dict[str, Any] = {
     "engine": {"scheduler": OneOf("processes", "local", accept=lambda v: isinstance(v, str)
                                   and "://" in v, text="processes, local or tcp://HOST:PORT"),
                "workers": (int, None)},
+    "loop_poses": AnyMapping,  # --refine, --gt-pose, RR thresholds, acceptance (issue 23)
+    "seeds": [int],
 }
 
 
