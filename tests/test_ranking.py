@@ -109,3 +109,13 @@ def test_candidate_list_that_finds_its_positive_is_fully_defined():
     m = ranking_metrics(r)
     assert m["recall_at_n"] == [0.0] + [1.0] * (MAX_N - 1)
     assert m["mrr"] == 0.5
+
+
+def test_rejected_candidates_are_known_misses_up_to_the_retrieval_depth():
+    # K = 5: query 0's candidates were all rejected, query 1 found its positive at rank 1
+    r = ranks_from_lists([np.array([4, 9]), np.array([2])], [{4}, {2}], [100, 100],
+                         [np.array([np.inf, np.nan]), np.array([0.1])], depth=[5, 5])
+    m = ranking_metrics(r)
+    assert m["recall_at_n"][:5] == [0.5] * 5
+    assert all(v is None for v in m["recall_at_n"][5:])
+    assert m["mrr"] == 0.5

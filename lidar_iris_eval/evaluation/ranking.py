@@ -29,10 +29,10 @@ Definitions (written to ``metrics.json`` as :data:`RANKING_DEFINITION`)
   positives are not ranked at all counting 0. Wild-Places' ``mrr`` is the
   mean of ``1 / rank`` over the queries found within the top 25 only
   (``recall_idx``), which is reported beside it as ``mrr_top25_found``.
-* **ranked lists** – a two-stage method ranks only its verified retrieval
-  candidates (K per query), so a rank beyond its list is unknown:
-  Recall@N for ``N`` above the shortest list (when that list misses its
-  positives) is undefined (``null``), never 0.
+* **ranked lists** – a two-stage method ranks only its K retrieval
+  candidates per query (verified; a rejected one is a known miss), so a
+  rank beyond K is unknown: Recall@N for ``N > K`` is undefined (``null``,
+  never 0) as soon as one query's positives are not among its candidates.
 """
 
 from __future__ import annotations
@@ -136,6 +136,7 @@ def ranks_from_lists(
     positives: Sequence[np.ndarray] | Sequence[set],
     database_size: np.ndarray | Sequence[int],
     scores: Sequence[np.ndarray] | None = None,
+    depth: np.ndarray | Sequence[int] | None = None,
 ) -> Ranks:
     """Ranks from per-query candidate lists (two-stage methods, a k-d tree's top K).
 
@@ -148,6 +149,9 @@ def ranks_from_lists(
         them, retrieved or not: a query without any is not evaluated).
     database_size : per query, the size of its database.
     scores : optional per-query scores (distances) aligned with ``ranked``.
+    depth : per query, how deep the list looked (K of a retrieval, at most
+        the database size): a candidate rejected by verification is a known
+        miss, a frame beyond K is not. Default: the length of each list.
     """
     n = len(ranked)
     if len(positives) != n or len(database_size) != n:
@@ -164,7 +168,7 @@ def ranks_from_lists(
             keep = np.isfinite(s)
             cand, s = cand[keep], s[keep]
             cand = cand[np.lexsort((cand, s))]
-        covered[i] = len(cand)
+        covered[i] = len(cand) if depth is None else int(depth[i])
         pos = np.asarray(sorted(positives[i]), dtype=np.int64)
         has_positive[i] = len(pos) > 0
         if not len(pos) or not len(cand):
