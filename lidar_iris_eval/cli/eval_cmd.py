@@ -48,7 +48,18 @@ register_flags({
 @workflow_options
 @click.argument("sequence", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--protocol", "protocols", type=click.Choice(["1", "2"]), multiple=True,
-              required=True, help="1 (best match per query) or 2 (all pairs); may be repeated.")
+              help="1 (best match per query) or 2 (all pairs); may be repeated. Required "
+                   "for a SEQUENCE; a --query/--database run has its own protocol.")
+@click.option("--query", "query_path", type=click.Path(path_type=Path), default=None,
+              help="Cross-session run: the query session (docs/cross-session.md).")
+@click.option("--database", "database_path", type=click.Path(path_type=Path), default=None,
+              help="Cross-session run: the database session.")
+@click.option("--align", "align_path", type=click.Path(path_type=Path, dir_okay=False),
+              default=None, help="Rigid transform (12 or 16 numbers) moving the query "
+                                 "session's LiDAR poses into the database's world frame.")
+@click.option("--ranking", is_flag=True,
+              help="Also rank each query's database (Recall@1..25, Recall@1 %, MRR) in a "
+                   "within-sequence run: one more matching pass for protocol 1.")
 @descriptor_options
 @ground_truth_options
 @click.option("--recall-denominator", type=click.Choice(["revisits", "accepted"]),
@@ -72,7 +83,8 @@ register_flags({
 @click.option("--scheduler", default="processes", show_default=True,
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
-def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_dir, workers,
+def command(sequence, protocols, query_path, database_path, align_path, ranking,
+            descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
@@ -84,6 +96,14 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
     settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
+    if query_path is not None or database_path is not None or align_path is not None:
+        from lidar_iris_eval.cli.sessions_eval import evaluate_sessions_cli
+
+        evaluate_sessions_cli(sequence, query_path, database_path, align_path, protocols,
+                              descriptor_text, preset, params, sensor, cache_dir, workers, quiet,
+                              settings, conv, out, overwrite, as_json, reader_options, plan,
+                              export_path, scheduler)
+        return
     if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
         _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
                        cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
@@ -112,7 +132,8 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     with open_executor(check_scheduler(scheduler), workers) as executor:
         run = evaluate(seq, descriptors, protocols, settings, cache=cache, workers=workers,
                        progress=not quiet, executor=executor,
-                       dbs=extract_all(seq, descriptors, cache, workers, quiet, executor))
+                       dbs=extract_all(seq, descriptors, cache, workers, quiet, executor),
+                       ranking=ranking)
         engine_info = (executor.describe() if executor.distributes_blocks
                        else {"scheduler": scheduler})
     extra = {**config_extra(conv), "engine": engine_info}
