@@ -102,3 +102,29 @@ def test_pair_list_pr_equals_protocol2_restricted_to_the_pairs(tmp_path, method)
     np.testing.assert_array_equal(scored.curve.recall, restricted.recall)
     np.testing.assert_array_equal(scored.curve.threshold, restricted.threshold)
     assert scored.metrics["n_pairs"] == len(pairs)
+
+
+def test_cli_pairs_file_and_ssc_rule_agree(tmp_path, capsys):
+    import json
+
+    from conftest import assert_one_line_error, run_cli
+
+    root = loop_sequence(tmp_path / "loop", frames=70)
+    seq = open_sequence(root)
+    rule = SSCRule(min_gap=50, negative_ratio=10, seed=0,
+                   pose_frame="camera")  # what --pairs ssc uses
+    pairs = ssc_pairs(seq.positions("camera"), rule)
+    write_pairs(tmp_path / "list.txt", pairs)
+    outs = []
+    for k, value in enumerate([str(tmp_path / "list.txt"), "ssc"]):
+        code, out, err = run_cli(["eval", root, "--pairs", value, "--descriptor", "m2dp",
+                                  "--json", "--out", tmp_path / f"run{k}", "--cache-dir",
+                                  tmp_path / "cache", "-q"], capsys)
+        assert code == 0, err
+        outs.append(json.loads(out)["results"][0])
+    for key in ("ap", "f1_max", "r100p", "n_pairs", "n_positives"):
+        assert outs[0][key] == outs[1][key]
+    assert outs[0]["n_positives"] == int(pairs[:, 2].sum()) > 0
+    code, _, err = run_cli(["eval", root, "--pairs", "ssc", "--protocol", "1",
+                            "--descriptor", "m2dp"], capsys)
+    assert_one_line_error(code, err, "--protocol", "does not apply")

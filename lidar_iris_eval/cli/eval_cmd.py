@@ -57,6 +57,10 @@ register_flags({
 @click.option("--align", "align_path", type=click.Path(path_type=Path, dir_okay=False),
               default=None, help="Rigid transform (12 or 16 numbers) moving the query "
                                  "session's LiDAR poses into the database's world frame.")
+@click.option("--pairs", "pairs_text", default=None, metavar="FILE|ssc[:N]",
+              help="Score a list of pairs instead of protocols 1/2: a file of 'i j label' "
+                   "lines, or 'ssc' / 'ssc:N' for SSC's rule (< 3 m and more than 50 frames "
+                   "apart; N negatives > 20 m per positive, default 10, seed 0).")
 @click.option("--ranking", is_flag=True,
               help="Also rank each query's database (Recall@1..25, Recall@1 %, MRR) in a "
                    "within-sequence run: one more matching pass for protocol 1.")
@@ -83,7 +87,7 @@ register_flags({
 @click.option("--scheduler", default="processes", show_default=True,
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
-def command(sequence, protocols, query_path, database_path, align_path, ranking,
+def command(sequence, protocols, query_path, database_path, align_path, pairs_text, ranking,
             descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler):
@@ -113,6 +117,17 @@ def command(sequence, protocols, query_path, database_path, align_path, ranking,
     sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
     descriptors = build_descriptors(descriptor_text, preset, sensor, params) \
         if descriptor_text else []
+    if pairs_text is not None:
+        from lidar_iris_eval.cli.pairs_eval import evaluate_pairs_cli
+
+        seq = open_input(sequence, reader_options)
+        for d in descriptors:
+            d.check_inputs(seq)
+        with open_executor(check_scheduler(scheduler), workers) as executor:
+            evaluate_pairs_cli(seq, descriptors, pairs_text, protocols, cache_dir, workers,
+                               quiet, out, overwrite, as_json, executor,
+                               {**config_extra(conv), "sensor": sensor})
+        return
     check_request(descriptors, protocols, settings)
     if export_path is not None:
         if "1" not in protocols:

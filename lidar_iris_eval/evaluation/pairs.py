@@ -186,3 +186,53 @@ def score_pair_list(pairs: np.ndarray, distances: np.ndarray, source: str = "pai
                    pair_rule="each listed pair (i, j) is scored by the method's verification "
                              "score of j for query i; accepted when <= tau; no exclusion window")
     return PairListResult(pairs, np.asarray(distances, dtype=np.float64), curve, metrics)
+
+
+def parse_pairs_option(text: str) -> tuple[str, int | None]:
+    """``--pairs`` value: ``ssc`` / ``ssc:N`` (SSC's rule, N negatives per positive) or a file."""
+    if text == "ssc" or text.startswith("ssc:"):
+        ratio = 10
+        if ":" in text:
+            try:
+                ratio = int(text.split(":", 1)[1])
+            except ValueError:
+                raise LirisError(f"--pairs {text}", "expected ssc:N with N an integer") from None
+            if ratio < 1:
+                raise LirisError(f"--pairs {text}", "N must be at least 1")
+        return "ssc", ratio
+    return "file", None
+
+
+def evaluate_pair_list(seq, descriptors, pairs_text: str, *, cache=None, workers: int = 1,
+                       progress: bool = False, executor=None) -> tuple[np.ndarray, list, dict]:
+    """Score every descriptor on a pair list of ``seq``: ``(pairs, [(desc, db, result)], info)``.
+
+    ``pairs_text`` is ``ssc``, ``ssc:N`` or a pair-list file (module docstring).
+    """
+    from lidar_iris_eval.extract import extract
+
+    kind, ratio = parse_pairs_option(pairs_text)
+    if kind == "ssc":
+        frame = "camera" if seq.camera_poses is not None else "lidar"
+        rule = SSCRule(negative_ratio=ratio, pose_frame=frame)
+        pairs = ssc_pairs(seq.positions(frame), rule)
+        info = {"pair_list": f"SSC rule, {ratio} negatives per positive, seed {rule.seed}",
+                "pair_rule_source": rule.source, "pose_frame": frame}
+        if not np.any(pairs[:, 2] == 1):
+            raise LirisError(f"--pairs {pairs_text}", "the SSC rule finds no positive pair "
+                                                      "(< 3 m, more than 50 frames apart)")
+    else:
+        pairs = read_pairs(pairs_text, len(seq))
+        info = {"pair_list": str(Path(pairs_text).resolve())}
+    results = []
+    for desc in descriptors:
+        db = extract(seq, desc, cache=cache, workers=workers, progress=progress,
+                     executor=executor)
+        import time
+
+        t0 = time.perf_counter()
+        distances = pair_distances_of(desc, desc.prepare(db.descriptors), pairs)
+        res = score_pair_list(pairs, distances, info["pair_list"])
+        res.metrics["match_us_per_pair"] = (time.perf_counter() - t0) / max(1, len(pairs)) * 1e6
+        results.append((desc, db, res))
+    return pairs, results, info

@@ -94,6 +94,8 @@ class Run:
         """
         if protocol == "cross-session":
             return self._csv(f"cross_session/{descriptor}/pr.csv", PR_COLUMNS)
+        if protocol == "pairs":
+            return self._csv(f"pairs/{descriptor}/pr.csv", PR_COLUMNS)
         return self._csv(f"protocol{protocol}/{descriptor}/pr.csv", PR_COLUMNS)
 
     def matches(self, descriptor: str, required: bool = True) -> pd.DataFrame | None:
