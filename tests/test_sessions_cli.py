@@ -96,3 +96,38 @@ def test_cross_session_errors_are_one_line(world, capsys):
     code, _, err = run_cli(["eval", "--query", s1, "--database", s0, "--align",
                             world / "bad.txt", "--descriptor", "m2dp"], capsys)
     assert_one_line_error(code, err, "bad.txt", "12 or 16")
+
+
+def test_sessions_plan_runs_every_ordered_pair(world, capsys):
+    plan = world / "plan.yaml"
+    plan.write_text("descriptors: [m2dp, scan-context]\nsessions: [w/session0, w/session1]\n")
+    code, out, err = run_cli(["eval", "--plan", plan, "--out", world / "planned", "--cache-dir",
+                              world / "cache", "-q"], capsys)
+    assert code == 0, err
+    summary = (world / "planned" / "summary.csv").read_text().splitlines()
+    assert summary[0].startswith("query,database,descriptor")
+    assert len(summary) == 1 + 2 * 2 + 2  # two ordered pairs x two methods, two means
+    assert (world / "planned" / "00-session0-vs-session1" / "metrics.json").is_file()
+    code, out, err = run_cli(["show", world / "planned" / "01-session1-vs-session0"], capsys)
+    assert code == 0 and "cross-session" in out
+    plan.write_text("pairs: [{query: w/session1}]\ndescriptors: m2dp\n")
+    code, _, err = run_cli(["eval", "--plan", plan, "--out", world / "bad-plan"], capsys)
+    assert_one_line_error(code, err, "plan.yaml", "needs query and database")
+
+
+def test_gt_overlap_counts_and_caches(world, capsys):
+    from lidar_iris_eval.simulate import simulate_sequence
+
+    seq = simulate_sequence(world / "short", "tiny-same", frames=12, azimuth_steps=256)
+    args = ["gt", seq, "--gt", "overlap", "--exclude", "2", "--cache-dir", world / "ocache",
+            "--json"]
+    code, out, err = run_cli(args, capsys)
+    assert code == 0, err
+    first = json.loads(out)
+    assert first["overlap_from_cache"] is False
+    assert first["overlap_positive_pairs"] > 0
+    assert 0 < first["share_of_pose_pairs_with_overlap"] <= 1
+    code, out, err = run_cli(args, capsys)
+    assert json.loads(out)["overlap_from_cache"] is True
+    code, _, err = run_cli(["gt", "--poses", seq / "poses.txt", "--gt", "overlap"], capsys)
+    assert_one_line_error(code, err, "--gt overlap", "SEQUENCE")

@@ -108,6 +108,16 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
                               settings, conv, out, overwrite, as_json, reader_options, plan,
                               export_path, scheduler)
         return
+    if plan is not None and not sequence:
+        from lidar_iris_eval.cli.sessions_plan import is_sessions_plan, run_sessions_plan
+
+        if is_sessions_plan(plan):  # query/database pairs
+            if protocols:
+                raise LirisError("--protocol", "does not apply to a plan of query/database "
+                                               "pairs")
+            run_sessions_plan(plan, descriptor_text, preset, params, sensor, cache_dir, workers,
+                              quiet, settings, conv, out, overwrite, reader_options, scheduler)
+            return
     if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
         _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
                        cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,

@@ -48,7 +48,6 @@ def recall_figure(curves: Mapping[str, np.ndarray], title: str = "") -> Figure:
         if title:
             ax.set_title(title)
         ax.legend(fontsize=6, loc="lower right")
-        fig.subplots_adjust(left=0.16, right=0.97, bottom=0.17, top=0.88)
     return fig
 
 
