@@ -232,7 +232,7 @@ def extract(
 
 def _warn_if_degenerate(arrays, descriptor, seq) -> None:
     """Warn when most descriptors are empty or constant (millimetres, wrong frame)."""
-    from lidar_iris_eval.evaluation.sanity import warn_if_degenerate
+    from lidar_iris_eval.descriptors.sanity import warn_if_degenerate
 
     warn_if_degenerate(arrays.get("descriptors"), descriptor.name, seq.name,
                        sample=lambda i: seq[i])
@@ -424,3 +424,18 @@ def _init_worker(seq, descriptor, parent_pid: int | None = None) -> None:
 
 def _worker_range(a: int, b: int):
     return _compute_range(_WORKER["seq"], _WORKER["descriptor"], a, b)
+
+
+def external_database(desc, seq_name: str = "", fingerprint: str = ""):
+    """A :class:`DescriptorDB` for an
+    :class:`~lidar_iris_eval.descriptors.external.ExternalDescriptor`, as extraction returns.
+
+    Times are NaN: the descriptors were computed elsewhere, so their cost is
+    unknown and is reported as undefined.
+    """
+    stacked = desc.stacked()
+    n = len(stacked)
+    return DescriptorDB(descriptor=desc.name, preset=desc.preset, params=params_dict(desc.params),
+                        descriptors=stacked, extract_s=np.full(n, np.nan),
+                        read_s=np.full(n, np.nan), sequence=seq_name, fingerprint=fingerprint,
+                        cache_path=None, from_cache=False)

@@ -130,8 +130,8 @@ def config_extra(convention=None) -> dict:
 
 def extract_all(seq, descriptors, cache, workers: int, quiet: bool, executor=None):
     """One DescriptorDB per descriptor: extracted (or cached) ones and external files."""
-    from lidar_iris_eval.descriptors.external import ExternalDescriptor, external_database
-    from lidar_iris_eval.extract import extract
+    from lidar_iris_eval.descriptors.external import ExternalDescriptor
+    from lidar_iris_eval.extract import external_database, extract
 
     dbs = []
     for d in descriptors:
