@@ -153,11 +153,19 @@ def _global_pass(descriptor, q_desc, db_desc, positives, limits, rows, progress)
     cols = np.arange(n_db)
     for a in range(0, n_q, rows):
         b = min(a + rows, n_q)
-        d, _ = descriptor.pairwise(q_desc[a:b], db_desc)
+        # within a sequence a block only needs the database its last query may see
+        width = n_db if limits is None else int(max(limits[a:b].max(), -1)) + 1
+        if width == 0:
+            size[a:b] = 0
+            if progress is not None:
+                progress(b - a)
+            continue
+        d, _ = descriptor.pairwise(q_desc[a:b], db_desc[:width])
         d = np.asarray(d, dtype=np.float64)
-        valid = (np.ones((b - a, n_db), bool) if limits is None
-                 else cols[None, :] <= limits[a:b, None])
-        r = ranks_from_distances(d, _positive_block(positives, a, b, n_db), valid)
+        valid = (np.ones((b - a, width), bool) if limits is None
+                 else cols[None, :width] <= limits[a:b, None])
+        pos = _positive_block(positives, a, b, n_db)[:, :width]
+        r = ranks_from_distances(d, pos, valid)
         rank[a:b], has[a:b], size[a:b] = r.rank, r.has_positive, r.database_size
         masked = np.where(valid & np.isfinite(d), d, np.inf)
         best = np.argmin(masked, axis=1)
