@@ -8,7 +8,6 @@ from synthetic_loop import loop_sequence
 
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.evaluation.conventions import PRESETS, database_limits
 from lidar_iris_eval.evaluation.cross_session import (
     EXCLUSION_RULE,
     align_poses,
@@ -16,7 +15,9 @@ from lidar_iris_eval.evaluation.cross_session import (
     evaluate_sessions,
     read_transform,
 )
+from lidar_iris_eval.evaluation.ground_truth import database_limits
 from lidar_iris_eval.evaluation.protocol1 import protocol1
+from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.extract import extract
 from lidar_iris_eval.io import open_sequence
 from lidar_iris_eval.simulate import resolve_config
@@ -46,8 +47,7 @@ def test_recall_at_1_is_protocol1_top1_on_the_same_sequence(loop, sessions, meth
     db = extract(seq, desc)
     positions = seq.positions("camera")
     p1 = protocol1(desc, db, positions, exclude=exclude, radius=radius)
-    limits = database_limits(len(seq), PRESETS["liris"].__class__(
-        **{**PRESETS["liris"].to_dict(), "exclude": exclude}))
+    limits = database_limits(len(seq), Settings(exclude=exclude, radius=radius))
     positives = cross_positives(positions, positions, radius)
     res = evaluate_sessions(desc, db, db, positives, limits=limits, same_sequence=True)
     m1 = p1.metrics
