@@ -8,7 +8,7 @@ from __future__ import annotations
 import click
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
-from lidar_iris_eval.cli.extract_cmd import build_descriptors, open_input
+from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
 from lidar_iris_eval.cli.output import echo_json
 from lidar_iris_eval.cli.workflow import config_extra, table_format
 from lidar_iris_eval.errors import LirisError

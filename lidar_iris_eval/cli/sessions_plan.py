@@ -103,7 +103,7 @@ def run_sessions_plan(plan: Path, descriptor_text, preset, params, sensor, cache
                       quiet, settings, conv, out, overwrite, reader_options, scheduler) -> None:
     """Evaluate every pair into ``out/NN-<query>-vs-<database>/`` and write the summary."""
     from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
-    from lidar_iris_eval.cli.extract_cmd import build_descriptors, open_input
+    from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import config_extra
     from lidar_iris_eval.engine.plan import write_text_atomic
     from lidar_iris_eval.evaluation.cross_session import read_transform
