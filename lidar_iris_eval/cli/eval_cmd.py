@@ -49,7 +49,22 @@ register_flags({
 @loop_pose_options
 @click.argument("sequence", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--protocol", "protocols", type=click.Choice(["1", "2"]), multiple=True,
-              required=True, help="1 (best match per query) or 2 (all pairs); may be repeated.")
+              help="1 (best match per query) or 2 (all pairs); may be repeated. Required "
+                   "for a SEQUENCE; a --query/--database run has its own protocol.")
+@click.option("--query", "query_path", type=click.Path(path_type=Path), default=None,
+              help="Cross-session run: the query session (docs/cross-session.md).")
+@click.option("--database", "database_path", type=click.Path(path_type=Path), default=None,
+              help="Cross-session run: the database session.")
+@click.option("--align", "align_path", type=click.Path(path_type=Path, dir_okay=False),
+              default=None, help="Rigid transform (12 or 16 numbers) moving the query "
+                                 "session's LiDAR poses into the database's world frame.")
+@click.option("--pairs", "pairs_text", default=None, metavar="FILE|ssc[:N]",
+              help="Score a list of pairs instead of protocols 1/2: a file of 'i j label' "
+                   "lines, or 'ssc' / 'ssc:N' for SSC's rule (< 3 m and more than 50 frames "
+                   "apart; N negatives > 20 m per positive, default 10, seed 0).")
+@click.option("--ranking", is_flag=True,
+              help="Also rank each query's database (Recall@1..25, Recall@1 %, MRR) in a "
+                   "within-sequence run: one more matching pass for protocol 1.")
 @descriptor_options
 @ground_truth_options
 @click.option("--recall-denominator", type=click.Choice(["revisits", "accepted"]),
@@ -75,7 +90,8 @@ register_flags({
 @click.option("--scheduler", default="processes", show_default=True,
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
-def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_dir, workers,
+def command(sequence, protocols, query_path, database_path, align_path, pairs_text, ranking,
+            descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
             loop_settings, odometry_path, seeds):
@@ -88,6 +104,24 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
     settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
+    if query_path is not None or database_path is not None or align_path is not None:
+        from lidar_iris_eval.cli.sessions_eval import evaluate_sessions_cli
+
+        evaluate_sessions_cli(sequence, query_path, database_path, align_path, protocols,
+                              descriptor_text, preset, params, sensor, cache_dir, workers, quiet,
+                              settings, conv, out, overwrite, as_json, reader_options, plan,
+                              export_path, scheduler)
+        return
+    if plan is not None and not sequence:
+        from lidar_iris_eval.cli.sessions_plan import is_sessions_plan, run_sessions_plan
+
+        if is_sessions_plan(plan):  # query/database pairs
+            if protocols:
+                raise LirisError("--protocol", "does not apply to a plan of query/database "
+                                               "pairs")
+            run_sessions_plan(plan, descriptor_text, preset, params, sensor, cache_dir, workers,
+                              quiet, settings, conv, out, overwrite, reader_options, scheduler)
+            return
     if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
         if loop_settings.registers or odometry_path is not None or seeds is not None:
             raise LirisError("--refine/--gt-pose/--odometry/--seeds",
@@ -100,6 +134,17 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
     descriptors = build_descriptors(descriptor_text, preset, sensor, params) \
         if descriptor_text else []
+    if pairs_text is not None:
+        from lidar_iris_eval.cli.pairs_eval import evaluate_pairs_cli
+
+        seq = open_input(sequence, reader_options)
+        for d in descriptors:
+            d.check_inputs(seq)
+        with open_executor(check_scheduler(scheduler), workers) as executor:
+            evaluate_pairs_cli(seq, descriptors, pairs_text, protocols, cache_dir, workers,
+                               quiet, out, overwrite, as_json, executor,
+                               {**config_extra(conv), "sensor": sensor})
+        return
     check_request(descriptors, protocols, settings)
     if export_path is not None:
         if "1" not in protocols:
@@ -122,6 +167,7 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
         def run_once(descs):
             return evaluate(seq, descs, protocols, settings, cache=cache, workers=workers,
                             progress=not quiet, executor=executor, loop_settings=loop_settings,
+                            ranking=ranking,
                             dbs=extract_all(seq, descs, cache, workers, quiet, executor))
 
         if seeds is None:

@@ -29,9 +29,16 @@ from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
 @sequence_options
 @click.option("--check-scans", is_flag=True,
               help="Also read every scan of SEQUENCE and report point counts (slow on KITTI).")
+@click.option("--gt", "gt_kind", type=click.Choice(["pose", "overlap"]), default="pose",
+              show_default=True,
+              help="overlap: also OverlapNet-style range-image overlap >= 0.3 from the scans "
+                   "(cached; docs/cross-session.md), with its agreement with pose distance.")
+@click.option("--cache-dir", type=click.Path(path_type=Path), default=None,
+              help="Where the overlap matrix is cached [default: $LIRIS_CACHE_DIR or "
+                   "./.liris-cache].")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_frame, check_scans,
-            as_json, reader_options):
+            gt_kind, cache_dir, as_json, reader_options):
     """Count positive pairs and revisit queries of SEQUENCE (or of --poses).
 
     Pairs are ordered pairs (i, j), i != j, positive when closer than --radius;
@@ -52,6 +59,11 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
         if seq is None:
             raise LirisError("--check-scans", "needs a SEQUENCE folder, not only --poses")
         summary.update(_scan_statistics(seq))
+    if gt_kind == "overlap":
+        if seq is None:
+            raise LirisError("--gt overlap", "needs a SEQUENCE folder (the scans), not only "
+                                             "--poses")
+        summary.update(_overlap_summary(seq, gt, exclude_frames, cache_dir))
     if as_json:
         echo_json(summary)
     else:
@@ -99,4 +111,32 @@ def _scan_statistics(seq) -> dict:
         "points_min": int(counts.min()),
         "points_median": int(np.median(counts)),
         "points_max": int(counts.max()),
+    }
+
+
+def _overlap_summary(seq, gt, exclude: int, cache_dir) -> dict:
+    """Overlap ground-truth counts and their agreement with the pose-distance ones."""
+    from lidar_iris_eval.evaluation.overlap import (
+        OverlapSpec,
+        cached_overlap_matrix,
+        overlap_ground_truth,
+    )
+
+    spec = OverlapSpec()
+    matrix, hit = cached_overlap_matrix(seq, cache_dir, spec, progress=True)
+    ogt = overlap_ground_truth(matrix, exclude, spec)
+    pose_pairs = {tuple(p) for p in gt.pairs.tolist()}
+    overlap_pairs = {tuple(p) for p in ogt.pairs.tolist()}
+    both = len(pose_pairs & overlap_pairs)
+    return {
+        "overlap_rule": f"range-image overlap >= {spec.threshold:g} (later frame as query; "
+                        f"{spec.height}x{spec.width}, {spec.fov_up_deg:g}/{spec.fov_down_deg:g} "
+                        f"deg, {spec.max_range:g} m, |dr| < {spec.range_tolerance:g} m)",
+        "overlap_positive_pairs": len(overlap_pairs),
+        "overlap_revisit_queries": ogt.n_revisits,
+        "pairs_positive_under_both": both,
+        "share_of_pose_pairs_with_overlap": both / len(pose_pairs) if pose_pairs else None,
+        "share_of_overlap_pairs_within_radius": both / len(overlap_pairs) if overlap_pairs
+        else None,
+        "overlap_from_cache": hit,
     }

@@ -67,7 +67,9 @@ def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
     """
     from lidar_iris_eval.evaluation.conventions import get_convention, same_rules, with_overrides
 
-    base = get_convention(name or "liris")
+    # a query/database run (liris eval --query --database) may use the cross-session presets
+    cross = bool(ctx.params.get("query_path")) and bool(ctx.params.get("database_path"))
+    base = get_convention(name or "liris", cross_session=cross)
     values = {}
     if _given(ctx, "radius") or name is None:
         values["radius"] = kwargs["radius"]
@@ -114,7 +116,9 @@ def ground_truth_options(func):
                   help="Measure distances between camera poses (KITTI, the paper) or LiDAR poses.")
     @click.option("--convention", "convention_name", default=None, metavar="NAME",
                   help="A peer's ground-truth convention: liris, scancontext-eval, logg3d, "
-                       "iris-cpp (docs/conventions.md); options given explicitly win.")
+                       "iris-cpp, wild-places-intra, contour-context, bevplace-00..08; with "
+                       "--query/--database also wild-places-inter, pointnetvlad "
+                       "(docs/conventions.md); options given explicitly win.")
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         ctx = click.get_current_context()

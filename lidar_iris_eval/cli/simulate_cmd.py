@@ -33,10 +33,17 @@ from lidar_iris_eval.simulate.trajectories import ROUTES
               help="Follow this KITTI pose file (camera frame) and build the world around it.")
 @click.option("--calib", type=click.Path(path_type=Path, dir_okay=False),
               help="calib.txt whose Tr goes with --trajectory (default: a KITTI-like Tr).")
+@click.option("--sessions", type=int, default=1, show_default=True,
+              help="Drive the same world this many times into OUT_DIR/session0.. (other "
+              "parked and moving cars, drive, noise; poses in session 0's frame).")
+@click.option("--session-sensor", "session_sensors", multiple=True,
+              type=click.Choice(sorted(SENSORS)),
+              help="Sensor of session 1, 2, ... (repeat; the last one repeats; default: the "
+              "preset's).")
 @click.option("--overwrite", is_flag=True, help="Replace the contents of a non-empty OUT_DIR.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_cars, trajectory,
-            calib, overwrite, quiet):
+            calib, sessions, session_sensors, overwrite, quiet):
     """Simulate a LiDAR sequence with exact ground truth into OUT_DIR.
 
     Writes velodyne/*.bin, labels/*.label (SemanticKITTI), poses.txt (camera
@@ -51,5 +58,12 @@ def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_
         calib=None if calib is None else str(calib),
     )
     cfg = resolve_config(preset, overrides)
+    if sessions != 1 or session_sensors:
+        from lidar_iris_eval.simulate.sessions import run_sessions
+
+        report = run_sessions(out_dir, cfg, sessions, tuple(session_sensors), overwrite,
+                              not quiet, preset)
+        click.echo(report.summary())
+        return
     report = run_simulation(out_dir, cfg, overwrite=overwrite, progress=not quiet, preset=preset)
     click.echo(report.summary())

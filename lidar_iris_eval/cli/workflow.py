@@ -70,9 +70,12 @@ def workflow_options(func):
         meta["external_metric"] = kwargs.pop("external_metric")
         meta["format"] = kwargs.pop("fmt")
         planned = kwargs.get("plan") is not None  # a plan file names its own runs
-        if not kwargs.get("sequence") and not planned:
+        # a query/database run names its own sessions and has its own protocol
+        sessions = kwargs.get("query_path") is not None or kwargs.get("database_path") is not None
+        paired = kwargs.get("pairs_text") is not None  # --pairs: the list is the protocol
+        if not kwargs.get("sequence") and not planned and not sessions:
             raise LirisError("liris eval", "give a SEQUENCE (or --config RUN/config.yaml)")
-        if not kwargs.get("protocols") and not planned:
+        if not kwargs.get("protocols") and not planned and not sessions and not paired:
             raise LirisError("liris eval", "give --protocol 1 and/or --protocol 2")
         # a descriptor list given here replaces the recorded one, with its parameters
         if ctx.get_parameter_source("descriptor_text") == ParameterSource.COMMANDLINE:

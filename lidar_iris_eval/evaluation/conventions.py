@@ -31,6 +31,42 @@ evaluation code; no code is taken from it):
   Distances are 3-D between the pose-file translations.
 * ``iris-cpp`` – the LiDAR Iris authors' C++ demo: planar 4 m, E = 300.
 
+* ``wild-places-intra`` – Wild-Places ``eval/intra-sequence.py``
+  (csiro-robotics/Wild-Places): ``world_thresh = 5`` m (strict ``<``) in the
+  ground plane (easting, northing: LiDAR-frame x, y), ``time_thresh = 300``
+  s with the database ``embeddings[:tt+1]``, ``tt`` the first scan later
+  than ``t_q - 300 s``, and queries only once 300 s have passed (LoGG3D-Net's
+  window rule); top-1; a rejected revisit is an FN, a wrong accepted match an
+  FP only (denominator ``accepted``). Its Recall@1 is the share of revisit
+  queries whose top-1 is within 5 m (``recall_at_1`` of ``--ranking``).
+* ``contour-context`` – contour-context ``scripts/pr_mpe.py``
+  (lewisjiang/contour-context): ``thres_dist = 5.0`` m, 3-D, between sensor
+  poses (columns 3, 7, 11 of its sensor-pose file: LiDAR frame); a revisit
+  has a frame ``j < i - 150`` within 5 m, so E = 151; per-query best score;
+  recall ``tp / (tp + fn)`` with ``fn`` the revisit queries not accepted
+  (denominator ``accepted``). Its revisit test is ``query_ball_point`` (``<=``)
+  while a match is true below 5 m (``<``); here both are strict (they differ
+  only for a pair exactly 5 m apart).
+* ``bevplace-00`` .. ``bevplace-08`` – BEVPlace ``kitti_dataset.py``
+  (zjuluolun/BEVPlace, ``evaluateResults``): the database is the first
+  ``kitti_seq_split_points[seq]`` frames (00: 3000, 02: 3400, 05: 1000,
+  06: 600, 08: 1000), queries are the frames from that point + 200 on,
+  positives closer than ``gt_thres = 5`` m (3-D, pose-file translations,
+  camera frame); top-1 recall over queries with a positive (``revisits``).
+
+Cross-session presets (``liris eval --query A --database B``; no exclusion
+window, :mod:`~lidar_iris_eval.evaluation.cross_session`):
+
+* ``wild-places-inter`` – Wild-Places ``eval/inter-sequence.py`` and
+  ``eval/generate_splits/testing_sets.py``: every query sequence against every
+  other, positives by ``KDTree.query_radius(r = 3)`` on (easting, northing):
+  planar, ``<=`` 3 m; Recall@1..25, Recall@1 %, MRR. Its test-region split of
+  the queries is not reproduced: every query scan is evaluated.
+* ``pointnetvlad`` – PointNetVLAD's ``generate_test_sets.py`` and
+  OpenPlaceRecognition's ``testing.py``: positives within 25 m
+  (``query_radius``, ``<=``) in (northing, easting): planar; Recall@N,
+  Recall@1 %.
+
 ``mapclosures`` is deliberately absent: MapClosures' ground truth
 (``tools/gt_closures.py``) is the overlap (>= 0.5) of voxelised (0.5 m) scans
 accumulated into local maps every 2 m, so it needs the point clouds, not only
@@ -71,6 +107,48 @@ PRESETS: dict[str, Settings] = {
         source="LiDAR Iris authors' C++ demo: planar distance, 4 m, 300 frames excluded"),
 }
 
+#: BEVPlace's database split per KITTI sequence (kitti_dataset.py kitti_seq_split_points)
+BEVPLACE_SPLITS = {"00": 3000, "02": 3400, "05": 1000, "06": 600, "08": 1000}
+#: BEVPlace's queries start this many frames after the database
+BEVPLACE_QUERY_GAP = 200
+
+PRESETS.update({
+    "wild-places-intra": Settings(
+        name="wild-places-intra", radius=5.0, exclude_seconds=300.0, window_rule="logg3d",
+        distance="planar", pose_frame="lidar", recall_denominator="accepted",
+        source="csiro-robotics/Wild-Places eval/intra-sequence.py (world_thresh = 5, "
+               "time_thresh = 300, database embeddings[:tt+1] with tt the first scan later "
+               "than t_q - 300 s, queries once 300 s have passed; easting/northing)"),
+    "contour-context": Settings(
+        name="contour-context", radius=5.0, exclude=151, distance="3d", pose_frame="lidar",
+        recall_denominator="accepted",
+        source="lewisjiang/contour-context scripts/pr_mpe.py (thres_dist = 5.0, revisit "
+               "j < i - 150, sensor-pose columns 3, 7, 11, fn = revisits not accepted)"),
+})
+for _seq, _split in BEVPLACE_SPLITS.items():
+    PRESETS[f"bevplace-{_seq}"] = Settings(
+        name=f"bevplace-{_seq}", radius=5.0, distance="3d", pose_frame="camera",
+        recall_denominator="revisits", database_frames=_split,
+        query_start=_split + BEVPLACE_QUERY_GAP,
+        source=f"zjuluolun/BEVPlace kitti_dataset.py evaluateResults (gt_thres = 5, database "
+               f"first kitti_seq_split_points['{_seq}'] = {_split} frames, queries from "
+               f"{_split} + 200; pose columns 3, 7, 11)")
+
+#: presets of query/database runs across sessions (no exclusion window)
+CROSS_SESSION_PRESETS: dict[str, Settings] = {
+    "wild-places-inter": Settings(
+        name="wild-places-inter", radius=3.0, distance="planar", pose_frame="lidar",
+        inclusive_radius=True,
+        source="csiro-robotics/Wild-Places eval/inter-sequence.py and "
+               "eval/generate_splits/testing_sets.py (KDTree.query_radius on easting/northing, "
+               "eval_thresh = 3; Recall@1..25, Recall@1%, MRR)"),
+    "pointnetvlad": Settings(
+        name="pointnetvlad", radius=25.0, distance="planar", pose_frame="lidar",
+        inclusive_radius=True,
+        source="PointNetVLAD generate_test_sets.py (query_radius r = 25 on northing/easting) "
+               "as kept by OpenPlaceRecognition testing.py (Recall@N, Recall@1%)"),
+}
+
 #: why a requested peer convention is not offered
 NOT_OFFERED = {
     "mapclosures": "MapClosures' ground truth is the overlap (>= 0.5) of voxelised local maps "
@@ -79,14 +157,24 @@ NOT_OFFERED = {
 }
 
 
-def get_convention(name: str) -> Settings:
-    """The preset called ``name``; an unknown or unavailable name is a LirisError."""
+def get_convention(name: str, cross_session: bool = False) -> Settings:
+    """The preset called ``name``; an unknown or unavailable name is a LirisError.
+
+    ``cross_session``: the run is a query/database run, where the
+    cross-session presets are allowed too.
+    """
+    if name in CROSS_SESSION_PRESETS:
+        if not cross_session:
+            raise LirisError(f"--convention {name}",
+                             "a cross-session convention: use it with --query and --database")
+        return CROSS_SESSION_PRESETS[name]
     if name in PRESETS:
         return PRESETS[name]
     if name in NOT_OFFERED:
         raise LirisError(f"--convention {name}", f"not available: {NOT_OFFERED[name]}")
     raise LirisError(f"--convention {name}",
-                     f"unknown convention; choose from {', '.join(PRESETS)}")
+                     f"unknown convention; choose from "
+                     f"{', '.join([*PRESETS, *CROSS_SESSION_PRESETS])}")
 
 
 def with_overrides(conv: Settings, **values) -> Settings:
@@ -113,7 +201,8 @@ def same_rules(a: Settings, b: Settings) -> bool:
     return all(getattr(a, k) == getattr(b, k) for k in RULES)
 
 
-__all__ = ["NOT_OFFERED", "PRESETS", "Convention", "Settings", "convention_counts",
+__all__ = ["BEVPLACE_SPLITS", "CROSS_SESSION_PRESETS", "NOT_OFFERED", "PRESETS", "Convention",
+           "Settings", "convention_counts",
            "convention_header", "database_limits", "get_convention", "revisit_queries_within",
            "same_rules", "with_overrides"]
 
@@ -168,4 +257,9 @@ def convention_header(recorded: dict | None) -> dict:
             f"{recorded['not_revisit_radius']:g} m are neither true nor false positives")
     if recorded.get("last_frame_query") is False:
         out["query_range"] = "the last frame is never a query (Scan Context's evaluator)"
+    if recorded.get("database_frames") is not None:
+        out["exclude"] = None
+        out["exclude_preset"] = "database split"
+        out["query_range"] = (f"database: frames 0..{recorded['database_frames'] - 1}; queries: "
+                              f"frames from {recorded.get('query_start')} on (no window)")
     return out

@@ -212,6 +212,7 @@ def evaluate(
     convention: Settings | None = None,
     executor: Any = None,
     loop_settings: lp.LoopPoseSettings | None = None,
+    ranking: bool = False,
 ) -> Evaluation:
     """Extract and evaluate ``descriptors`` on ``sequence`` under ``settings``.
 
@@ -235,6 +236,9 @@ def evaluate(
         ``workers``).
     loop_settings : registration recall thresholds, ``--refine``, ``--gt-pose``
         (:mod:`~lidar_iris_eval.evaluation.loop_poses`); default: RR at 2 m / 5 deg only.
+    ranking : also rank every protocol 1 query's database (Recall@1..25,
+        Recall@1 %, MRR in the protocol 1 row; one more matching pass,
+        :func:`ranking_row`).
     """
     settings = Settings() if settings is None else settings
     if convention is not None:
@@ -266,6 +270,8 @@ def evaluate(
         if result.protocol1 is not None:
             result = _with_loop_poses(result, sequence, positions, forward, settings,
                                       loop_settings, progress)
+        if ranking and result.protocol1 is not None:
+            result.rows[0].update(ranking_row(desc, db, positions, settings, times))
         results.append(result)
     return Evaluation(sequence, settings, protocols, pose_frame, results,
                       time.perf_counter() - started, loop_settings=loop_settings)
@@ -315,6 +321,28 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
                                progress=None if p1 is not None else bar.update,
                                executor=executor)
     return DescriptorResult(desc, db, p1, p2, _rows(desc, db, p1, p2, s))
+
+
+def ranking_row(desc, db, positions, settings: Settings, times=None) -> dict:
+    """Recall@1..25, Recall@1 % and MRR of protocol 1's queries over their own databases.
+
+    The database of query ``i`` is what protocol 1 allows (``j <= limits[i]``);
+    positives are the frames within the radius there. Recall@1 equals
+    protocol 1's top-1 accuracy over revisit queries (``n_true_top1 /
+    n_revisits``) under the standard rule.
+    """
+    from lidar_iris_eval.evaluation.cross_session import cross_positives, evaluate_sessions
+    from lidar_iris_eval.evaluation.ground_truth import gt_coordinates
+
+    limits = database_limits(len(db), settings, times)
+    coords = gt_coordinates(positions, settings.pose_frame, settings.distance)
+    positives = cross_positives(coords, coords, settings.radius, settings.inclusive_radius)
+    res = evaluate_sessions(desc, db, db, positives, limits=limits, same_sequence=True,
+                            candidates=settings.candidates, pair_budget=settings.pair_budget,
+                            label="ranking")
+    keys = ("recall_at_1", "recall_at_1pct", "recall_1pct_n", "mrr", "mrr_top25_found",
+            "recall_at_n", "n_ranking_queries", "ranking_definition", "ranking_rule")
+    return {k: res.metrics[k] for k in keys}
 
 
 def _pose_kind(p1: Protocol1Result) -> str:

@@ -169,7 +169,10 @@ def database_limits(n_frames: int, conv, times: np.ndarray | None = None,
     non-decreasing) and follow ``conv.window_rule``.
     """
     index = np.arange(n_frames)
-    if conv.exclude_seconds is None:
+    if getattr(conv, "database_frames", None) is not None:
+        # a fixed database, the first part of the sequence (BEVPlace's split)
+        limits = np.where(index >= conv.query_start, conv.database_frames - 1, -1)
+    elif conv.exclude_seconds is None:
         if conv.exclude is None or conv.exclude < 1:
             raise LirisError(f"convention {conv.name}", "exclusion window must be at least 1")
         limits = index - int(conv.exclude)

@@ -33,7 +33,8 @@ RECALL_DENOMINATORS = ("revisits", "accepted")
 WINDOW_RULES = ("liris", "logg3d")
 #: the ground-truth rules (what to_dict writes besides the preset name and source)
 RULES = ("radius", "exclude", "exclude_seconds", "window_rule", "distance", "pose_frame",
-         "recall_denominator", "not_revisit_radius", "inclusive_radius", "last_frame_query")
+         "recall_denominator", "not_revisit_radius", "inclusive_radius", "last_frame_query",
+         "database_frames", "query_start")
 
 
 def resolve_exclude(value: int | str) -> tuple[int, str]:
@@ -98,6 +99,10 @@ class Settings:
     inclusive_radius : a protocol 1 match exactly at ``radius`` is true
         (LoGG3D's ``<=``); protocol 2 positives stay strict.
     last_frame_query : False when the last frame is never a query.
+    database_frames : None, or N: the database is frames ``[0, N)`` for every
+        query (BEVPlace's split of one sequence); the window is then unused.
+    query_start : with ``database_frames``, the first query frame (queries
+        are frames ``>= query_start``; default ``database_frames``).
     name : preset name; None names it ``liris`` when every rule is liris'
         default, else ``custom``.
     source : where the values come from.
@@ -115,6 +120,8 @@ class Settings:
     not_revisit_radius: float | None = None
     inclusive_radius: bool = False
     last_frame_query: bool = True
+    database_frames: int | None = None
+    query_start: int | None = None
     name: str | None = None
     source: str = ""
     exclude_name: str = field(init=False, default="")
@@ -153,6 +160,15 @@ class Settings:
         if self.not_revisit_radius is not None and not self.not_revisit_radius >= self.radius:
             raise LirisError(option("not_revisit_radius", self.not_revisit_radius),
                              "must be at least the radius")
+        if self.database_frames is not None:
+            start = self.database_frames if self.query_start is None else self.query_start
+            if self.database_frames < 1 or start < self.database_frames:
+                raise LirisError(option("database_frames", self.database_frames),
+                                 "needs at least 1 database frame and queries after them")
+            object.__setattr__(self, "query_start", int(start))
+        elif self.query_start is not None:
+            raise LirisError(option("query_start", self.query_start),
+                             "only used together with database_frames")
         if self.name is None:
             default = all(getattr(self, k) == getattr(_LIRIS_RULES, k) for k in RULES) \
                 if _LIRIS_RULES is not None else True
@@ -162,7 +178,8 @@ class Settings:
     def standard(self) -> bool:
         """True when the ordinary protocol 1 (frame window, strict radius) applies."""
         return (self.exclude_seconds is None and self.not_revisit_radius is None
-                and not self.inclusive_radius and self.last_frame_query)
+                and not self.inclusive_radius and self.last_frame_query
+                and self.database_frames is None)
 
     def replace(self, **values) -> Settings:
         """A validated copy with ``values`` replaced (see :func:`with_overrides` for names)."""

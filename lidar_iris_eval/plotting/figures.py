@@ -34,6 +34,8 @@ FILE_STEMS = {
     "timing": "timing",
     "iris_frame": "iris_frame",
     "iris_alignment": "iris_alignment",
+    "recall": "recall_at_n",
+    "pr_cross": "pr_cross_session",
 }
 IRIS = "lidar-iris"
 
@@ -203,6 +205,13 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
                          f"frame index out of range (run has {run.n_frames} frames)")
     default_out = out_dir is None
     out = Path(run.path / "figures" if default_out else out_dir)
+    from lidar_iris_eval.plotting.recall import build_recall
+
+    if run.config.get("kind") == "cross-session":  # no trajectory, affinity or Iris frames
+        curves = run_curves(run, "cross-session")
+        return _write({"recall": build_recall(run),
+                       "pr_cross": pr_figure(curves, "cross-session, top-1 per query")},
+                      out, fmt, warn_overwrite=not default_out)
     figures: dict[str, Figure | None] = {
         "pr1": build_pr(run, 1),
         "pr2": build_pr(run, 2),
@@ -214,6 +223,7 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
     # show another method's internals as if they were its own
     if IRIS in run.descriptors():
         figures["iris_frame"], figures["iris_alignment"] = build_iris(run, frame)
+    figures["recall"] = build_recall(run)  # with --ranking
     return _write(figures, out, fmt, warn_overwrite=not default_out)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from lidar_iris_eval.errors import LirisError, os_error
 from lidar_iris_eval.runs import Run, conventions_lines, load_run
 from lidar_iris_eval.runs.schema import result_warnings
-from lidar_iris_eval.runs.table import TABLE_COLUMNS, cell, table_row
+from lidar_iris_eval.runs.table import RANKING_COLUMNS, TABLE_COLUMNS, cell, table_row
 
 PLOTLY_JS = "plotly.min.js"
 INSTALL_HINT = "the HTML report needs plotly: pip install 'lidar_iris_eval[report]'"
@@ -109,6 +109,12 @@ def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
         if run.descriptors(protocol):
             sections += [f"<h2>PR curves, protocol {protocol}</h2>",
                          _div(pr_figure(run, protocol, go), f"pr-protocol{protocol}")]
+    if run.descriptors("cross-session"):
+        sections += ["<h2>PR curves, cross-session (top-1 per query)</h2>",
+                     _div(pr_figure(run, "cross-session", go), "pr-cross-session")]
+    if any(r.get("recall_at_n") for r in run.rows):
+        sections += ["<h2>Recall@N</h2>", "<p>Undefined values (beyond a two-stage method's "
+                     "K candidates) are gaps.</p>", _div(recall_figure(run, go), "recall-at-n")]
     if run.descriptors(1) and run.has("positions.npy"):
         sections += ["<h2>Trajectory: protocol 1 at each method's max-F1 threshold</h2>",
                      "<p>Click a legend entry to show or hide it; one method is shown at first."
@@ -150,11 +156,12 @@ def _div(fig, div_id: str) -> str:
 def metrics_table(run: Run) -> str:
     """The summary table (the same cells as ``liris show``) as HTML."""
     rows = [table_row(r) for r in run.rows]
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in TABLE_COLUMNS)
+    columns = [*TABLE_COLUMNS, *[k for k in RANKING_COLUMNS if any(k in r for r in rows)]]
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
     body = []
     for r in rows:
         cells = []
-        for c in TABLE_COLUMNS:
+        for c in columns:
             value = r.get(c)
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
             cls = " class='num'" if numeric else ""
@@ -162,6 +169,21 @@ def metrics_table(run: Run) -> str:
         body.append("<tr>" + "".join(cells) + "</tr>")
     return (f"<table id='metrics'><thead><tr>{head}</tr></thead>"
             f"<tbody>{''.join(body)}</tbody></table>")
+
+
+def recall_figure(run: Run, go):
+    """Recall@N against N (1..25) of every row with ranking metrics."""
+    fig = go.Figure()
+    for k, row in enumerate(r for r in run.rows if r.get("recall_at_n")):
+        values = [None if v is None else 100 * v for v in row["recall_at_n"]]
+        fig.add_trace(go.Scatter(
+            x=list(range(1, len(values) + 1)), y=values, mode="lines+markers",
+            name=f"{row['descriptor']}/{row.get('preset')} (R@1 {cell(row.get('recall_at_1'))})",
+            line={"color": COLORS[k % len(COLORS)]}, connectgaps=False))
+    fig.update_layout(xaxis={"title": "N", "range": [0.5, 25.5]},
+                      yaxis={"title": "Recall@N [%]", "range": [0, 102]},
+                      height=400, margin={"l": 60, "r": 20, "t": 20, "b": 50})
+    return fig
 
 
 def pr_figure(run: Run, protocol: int, go):

@@ -16,7 +16,7 @@ from typing import Any
 
 from lidar_iris_eval.atomic import atomic_save_figure
 from lidar_iris_eval.runs.reader import Run
-from lidar_iris_eval.runs.table import table_row
+from lidar_iris_eval.runs.table import RANKING_COLUMNS, table_row
 
 #: the metrics compared, in order
 COMPARE_METRICS = ("ap", "f1_max", "r100p", "ep", "n", "positives")
@@ -33,6 +33,9 @@ CONVENTION_KEYS = (
     ("protocol 1 candidates", "conventions", ("candidates",)),
     ("not-a-revisit band", "conventions", ("not_revisit_band",)),
     ("query range", "conventions", ("query_range",)),
+    ("exclusion across sessions", "conventions", ("exclusion",)),
+    ("database session", "config", ("database", "name")),
+    ("database fingerprint", "config", ("database", "fingerprint")),
     ("sequence", "config", ("sequence", "name")),
     ("scan fingerprint", "config", ("sequence", "fingerprint")),
     ("frames", "config", ("sequence", "n_frames")),
@@ -110,9 +113,11 @@ def metric_comparison(runs: Sequence[Run]) -> list[dict[str, Any]]:
             if key not in keys:
                 keys.append(key)
         tables.append(rows)
+    # ranking metrics (cross-session runs, --ranking) only when some run has them
+    ranked = [k for k in RANKING_COLUMNS if any(k in row for t in tables for row in t.values())]
     out = []
     for key in keys:
-        for metric in COMPARE_METRICS:
+        for metric in (*COMPARE_METRICS, *ranked):
             values = [t.get(key, {}).get(metric) for t in tables]
             row: dict[str, Any] = {"protocol": key[0], "descriptor": key[1], "preset": key[2],
                                    "metric": metric}
@@ -175,7 +180,7 @@ def plot_pr_overlay(runs: Sequence[Run], out: str | os.PathLike) -> Path:
     import matplotlib.pyplot as plt
 
     labels = run_labels(runs)
-    protocols = sorted({r["protocol"] for run in runs for r in run.rows})
+    protocols = sorted({r["protocol"] for run in runs for r in run.rows}, key=str)
     fig, axes = plt.subplots(1, max(1, len(protocols)), figsize=(5.5 * max(1, len(protocols)), 4.5),
                              squeeze=False)
     styles = ["-", "--", ":", "-."]
@@ -188,7 +193,8 @@ def plot_pr_overlay(runs: Sequence[Run], out: str | os.PathLike) -> Path:
                 ax.plot(curve["recall"], curve["precision"], styles[k % len(styles)],
                         label=f"{row['descriptor']}/{row['preset']}/{label}")
         ax.set(xlim=(0, 1.02), ylim=(0, 1.02), xlabel="recall", ylabel="precision",
-               title=f"protocol {protocol}")
+               title=f"protocol {protocol}" if protocol != "cross-session" else
+               "cross-session (top-1)")
         ax.grid(alpha=0.3)
     # the legend goes below the panels, never over the curves
     handles, names = axes[0][0].get_legend_handles_labels()

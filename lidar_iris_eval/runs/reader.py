@@ -88,7 +88,15 @@ class Run:
 
     # ---- per-descriptor files ----------------------------------------------------------
     def pr(self, protocol: int, descriptor: str) -> pd.DataFrame:
-        """``protocolN/<descriptor>/pr.csv``: threshold, precision, recall (tp, fp, fn)."""
+        """``protocolN/<descriptor>/pr.csv``: threshold, precision, recall (tp, fp, fn).
+
+        ``protocol`` ``"cross-session"`` reads ``cross_session/<descriptor>/pr.csv``
+        (the top-1 curve of a query/database run).
+        """
+        if protocol == "cross-session":
+            return self._csv(f"cross_session/{descriptor}/pr.csv", PR_COLUMNS)
+        if protocol == "pairs":
+            return self._csv(f"pairs/{descriptor}/pr.csv", PR_COLUMNS)
         return self._csv(f"protocol{protocol}/{descriptor}/pr.csv", PR_COLUMNS)
 
     def matches(self, descriptor: str, required: bool = True) -> pd.DataFrame | None:

@@ -20,6 +20,8 @@ from lidar_iris_eval.errors import LirisError
 #: columns of the summary table, in order
 TABLE_COLUMNS = ("protocol", "descriptor", "preset", "ap", "f1_max", "r100p", "ep", "n",
                  "positives", "extract_ms_per_scan", "match_time")
+#: ranking columns, added when a row has them (cross-session runs, liris eval --ranking)
+RANKING_COLUMNS = ("recall_at_1", "recall_at_1pct", "mrr")
 #: output formats of :func:`render_table`
 FORMATS = ("table", "markdown", "latex", "csv")
 
@@ -35,7 +37,7 @@ def _plain(value: Any) -> Any:
 
 def table_row(row: Mapping[str, Any]) -> dict[str, Any]:
     """The summary columns of one ``metrics.json`` result row."""
-    p1 = row.get("protocol") == 1
+    p1 = row.get("protocol") in (1, "cross-session")  # one best match per query
     if p1:
         t = _plain(row.get("match_ms_per_query"))
         match_time = None if t is None else f"{t:.3f} ms/query"
@@ -50,6 +52,9 @@ def table_row(row: Mapping[str, Any]) -> dict[str, Any]:
     out["match_time"] = match_time
     # --refine (issue 23): registration time per loop, a column only when some row has it
     out["register_ms_per_loop"] = _plain(row.get("registration_ms_per_loop"))
+    for key in RANKING_COLUMNS:
+        if key in row:
+            out[key] = _plain(row.get(key))
     return out
 
 
@@ -80,9 +85,12 @@ def render_table(rows: Sequence[Mapping[str, Any]], fmt: str = "table",
         raise LirisError(f"--format {fmt}", f"choose from {', '.join(FORMATS)}")
     table = [table_row(r) if summarize else {c: _plain(r.get(c)) for c in columns}
              for r in rows]
+    standard = summarize and tuple(columns) == TABLE_COLUMNS
     columns = list(columns)
     if summarize and any(r.get("register_ms_per_loop") is not None for r in table):
         columns.append("register_ms_per_loop")
+    if standard:
+        columns += [k for k in RANKING_COLUMNS if any(k in r for r in table)]
     if fmt == "csv":
         buffer = io.StringIO()
         writer = csv.writer(buffer, lineterminator="\n")
@@ -141,7 +149,9 @@ def conventions_lines(conventions: Mapping[str, Any], config: Mapping[str, Any] 
     lines.append("positive: " + (c.get("positive") or f"ground-truth distance < {radius} m"))
     exclude = c.get("exclude")
     window = c.get("exclude_seconds")
-    if window is not None:
+    if c.get("exclusion"):  # a cross-session run
+        lines.append(f"exclusion: {c['exclusion']}")
+    elif window is not None:
         lines.append(f"exclusion: {window:g} s by scan time")
     else:
         lines.append(f"exclusion: E={exclude} frames ({c.get('exclude_preset', 'custom')}); "
@@ -151,12 +161,17 @@ def conventions_lines(conventions: Mapping[str, Any], config: Mapping[str, Any] 
     candidates = c.get("candidates")
     lines.append("protocol 1 search: " + ("exhaustive" if candidates is None
                                           else f"descriptor retrieval, {candidates} candidates"))
-    for key in ("not_revisit_band", "query_range", "threshold_rule", "ap", "ep",
-                "protocol2_counts", "reverse_revisit"):
+    for key in ("not_revisit_band", "query_range", "alignment", "ranking", "top1_pr",
+                "threshold_rule", "ap", "ep", "protocol2_counts", "reverse_revisit"):
         if c.get(key) is not None:
             lines.append(f"{key.replace('_', ' ')}: {c[key]}")
     sequence = config.get("sequence") or {}
     if sequence:
-        lines.append(f"sequence: {sequence.get('name')} ({sequence.get('n_frames')} frames, "
+        label = "query session" if config.get("database") else "sequence"
+        lines.append(f"{label}: {sequence.get('name')} ({sequence.get('n_frames')} frames, "
                      f"fingerprint {sequence.get('fingerprint')})")
+    database = config.get("database") or {}
+    if database:
+        lines.append(f"database session: {database.get('name')} ({database.get('n_frames')} "
+                     f"frames, fingerprint {database.get('fingerprint')})")
     return lines

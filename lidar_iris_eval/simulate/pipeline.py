@@ -44,12 +44,26 @@ from lidar_iris_eval.simulate.writer import (
     prepare_out_dir,
     publish,
     read_tr,
+    remove_stale,
     write_metadata,
     write_scan,
 )
 
 # independent random streams per part of the simulation
 _WORLD, _ROUTE, _TRAFFIC, _NOISE = 0, 1, 2, 3
+# later sessions of a multi-session world draw from [seed, _SESSION, session, part, ...];
+# parts start at 1 so that no key is another key with a trailing zero (SeedSequence pads
+# with zeros, so [a, b] and [a, b, 0] would give the same stream)
+_SESSION = 4
+_S_ROUTE, _S_TRAFFIC, _S_NOISE, _S_PARKED = 1, 2, 3, 4
+
+
+def stream_key(seed: int, part: int, session: int = 0) -> list[int]:
+    """Random-stream key of one part of the simulation of ``session`` (0: the preset's own)."""
+    if session == 0:
+        return [seed, part]
+    session_part = {_ROUTE: _S_ROUTE, _TRAFFIC: _S_TRAFFIC, _NOISE: _S_NOISE}.get(part, part)
+    return [seed, _SESSION, session, session_part]
 
 
 @dataclass(frozen=True)
@@ -96,23 +110,33 @@ def _grid_lines(xs: np.ndarray, ys: np.ndarray, extend: float) -> list[np.ndarra
     return vertical + horizontal
 
 
-def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None) -> Scenario:
+def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None, session: int = 0,
+                   sensor_name: str | None = None) -> Scenario:
     """Generate the world and the trajectory described by ``cfg``.
 
     ``world_params`` replaces the default :class:`WorldParams` (only in-memory
     training data of learned methods does this, e.g. for ``shape_variety``;
     sequences written by ``liris simulate`` always use the defaults).
+
+    ``session`` > 0 drives the same world again on another day
+    (:mod:`~lidar_iris_eval.simulate.sessions`): the same streets, buildings,
+    trees and poles; other parked cars, another drive along the same route
+    (lane offsets, speed and tilt noise), other moving cars, optionally
+    another sensor (``sensor_name``). Session 0 is exactly the preset's sequence.
     """
     wp = world_params if world_params is not None else WorldParams()
-    sensor = get_sensor(cfg.sensor, cfg.azimuth_steps)
+    sensor = get_sensor(sensor_name or cfg.sensor, cfg.azimuth_steps)
+    # the world does not depend on the session's sensor (trajectory worlds take the
+    # ground heights under the first session's sensor)
+    world_sensor = get_sensor(cfg.sensor, cfg.azimuth_steps)
     rng_world = np.random.default_rng([cfg.seed, _WORLD])
-    rng_route = np.random.default_rng([cfg.seed, _ROUTE])
+    rng_route = np.random.default_rng(stream_key(cfg.seed, _ROUTE, session))
     if cfg.trajectory is not None:
         tr = read_tr(cfg.calib) if cfg.calib is not None else default_tr()
         cam = read_kitti_poses(cfg.trajectory)
         poses = trajectory_from_file(cam, tr, cfg.frames)
         xy = poses[:, :2, 3]
-        ground_pts = poses[:, :3, 3] - sensor.mount_height * poses[:, :3, 2]
+        ground_pts = poses[:, :3, 3] - world_sensor.mount_height * poses[:, :3, 2]
         world = build_world([xy], rng_world, wp, height_samples=ground_pts)
         line = xy
     else:
@@ -127,11 +151,15 @@ def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None) -> S
         poses = poses_on_ground(world.ground, xy, yaw, sensor.mount_height, rng_route,
                                 rp.tilt_noise_deg)
         line = xy
+    if session > 0:
+        from lidar_iris_eval.simulate.sessions import repark
+
+        world = repark(world, np.random.default_rng(stream_key(cfg.seed, _S_PARKED, session)))
     traffic = None
     if cfg.moving_cars and cfg.n_moving_cars > 0:
         first = int(world.prims.instance.max(initial=0)) + 1
-        traffic = make_traffic(np.random.default_rng([cfg.seed, _TRAFFIC]), line,
-                               cfg.n_moving_cars, first)
+        traffic = make_traffic(np.random.default_rng(stream_key(cfg.seed, _TRAFFIC, session)),
+                               line, cfg.n_moving_cars, first)
     return Scenario(cfg, sensor, world, poses, traffic, tr)
 
 
@@ -186,8 +214,7 @@ def run_simulation(
     finished simulation.
     """
     out_dir = Path(out_dir)
-    if cfg.trajectory is not None and cfg.frames is None:
-        cfg = dataclasses.replace(cfg, frames=len(read_kitti_poses(cfg.trajectory)))
+    cfg = with_frames(cfg)
     check_out_dir(out_dir, overwrite)
     start = time.perf_counter()
     scen = build_scenario(cfg)  # before any folder exists: a bad option leaves nothing
@@ -196,7 +223,7 @@ def run_simulation(
     work = Path(tempfile.mkdtemp(prefix=temp_prefix(out_dir.name or "sim"), dir=out_dir.parent))
     try:
         prepare_out_dir(work, overwrite=True)
-        report = _simulate_into(work, out_dir, cfg, scen, progress, preset, start)
+        report = write_scenario(out_dir, scen, preset, start, progress, work=work)
         publish(work, out_dir)
     except LirisError as err:  # name the file the user asked for, not its temporary folder
         source = err.source or ""
@@ -208,18 +235,42 @@ def run_simulation(
     return report
 
 
-def _simulate_into(work: Path, out_dir: Path, cfg: SimConfig, scen: Scenario, progress: bool,
-                   preset: str | None, start: float) -> SimReport:
+def with_frames(cfg: SimConfig) -> SimConfig:
+    """``cfg`` with ``frames`` set to the trajectory file's length when it follows one."""
+    if cfg.trajectory is not None and cfg.frames is None:
+        cfg = dataclasses.replace(cfg, frames=len(read_kitti_poses(cfg.trajectory)))
+    return cfg
+
+
+def write_scenario(
+    out_dir: Path, scen: Scenario, preset: str | None, start: float, progress: bool,
+    session: int = 0, origin: np.ndarray | None = None, extra: dict | None = None,
+    work: Path | None = None,
+) -> SimReport:
+    """Cast every scan of ``scen`` and write the KITTI layout into a prepared ``out_dir``.
+
+    ``session`` picks the noise streams (0: the preset's own); ``origin`` is
+    the LiDAR pose that becomes the identity of ``poses.txt`` (default: the
+    first pose of ``scen``; another session's first pose puts both sessions
+    in one frame); ``extra`` entries are added to ``manifest.json``; ``work``
+    is the folder the files go to (default ``out_dir``; :func:`run_simulation`
+    builds in a temporary folder and moves it into place).
+    """
+    cfg = scen.config
+    work = out_dir if work is None else work
     n = len(scen.poses)
     dirs = scen.sensor.grid.directions
     total_points = 0
-    for i in tqdm(range(n), desc="simulate", unit="scan", disable=not progress, leave=False):
-        rng = np.random.default_rng([cfg.seed, _NOISE, i])
+    desc = "simulate" if session == 0 else f"simulate session {session}"
+    for i in tqdm(range(n), desc=desc, unit="scan", disable=not progress, leave=False):
+        rng = np.random.default_rng(stream_key(cfg.seed, _NOISE, session) + [i])
         scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(i), scen.poses[i],
                              rng, dirs)
         write_scan(work, i, scan.points, scan.intensity, scan.label,
                    scen.object_ids(i, scan.row))
         total_points += len(scan.points)
+    if work == out_dir:  # written in place (a session folder): drop an older run's extra scans
+        remove_stale(work, n)
     revisits = revisit_queries(scen.poses[:, :3, 3])
     camera_poses = scen.tr @ scen.poses @ np.linalg.inv(scen.tr)  # as written to poses.txt
     revisits_camera = revisit_queries(camera_poses[:, :3, 3])
@@ -238,7 +289,9 @@ def _simulate_into(work: Path, out_dir: Path, cfg: SimConfig, scen: Scenario, pr
         "classes": {str(k): v for k, v in labels.CLASS_NAMES.items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
-    write_metadata(work, scen.poses, scen.tr, manifest)
+    if extra:
+        manifest.update(extra)
+    write_metadata(work, scen.poses, scen.tr, manifest, origin)
     return SimReport(out_dir, cfg, n, total_points, len(revisits), time.perf_counter() - start,
                      int(len(revisits_camera)))
 

@@ -174,9 +174,15 @@ def write_scan(out_dir: Path, index: int, points: np.ndarray, intensity: np.ndar
 
 
 def write_metadata(out_dir: Path, lidar_poses: np.ndarray, tr: np.ndarray,
-                   manifest: dict) -> None:
-    """poses.txt (camera frame, re-based to identity), times.txt, calib.txt, manifest.json."""
-    rel = np.linalg.inv(lidar_poses[0]) @ lidar_poses
+                   manifest: dict, origin: np.ndarray | None = None) -> None:
+    """poses.txt (camera frame, re-based to identity), times.txt, calib.txt, manifest.json.
+
+    ``origin`` (4x4 LiDAR pose) is the pose written as identity; default the
+    first of ``lidar_poses``. Later sessions of a multi-session world pass the
+    first session's first pose, so every session's poses share one frame.
+    """
+    origin = lidar_poses[0] if origin is None else origin
+    rel = np.linalg.inv(origin) @ lidar_poses
     cam = tr @ rel @ np.linalg.inv(tr)
     atomic_write(out_dir / "poses.txt", poses_text(cam).encode())
     atomic_write(out_dir / "times.txt", times_text(len(lidar_poses)).encode())

@@ -1,0 +1,196 @@
+"""Multi-session worlds: the same streets driven again on other days.
+
+``liris simulate OUT --world tiny-mixed --sessions 2 --session-sensor vlp16``
+writes ``OUT/session0`` (byte-identical to ``liris simulate OUT --world
+tiny-mixed``) and ``OUT/session1``, plus ``OUT/sessions.json``. A later
+session ``k`` keeps the static world (streets, buildings, trees, poles,
+fences, ground) and changes what changes between days:
+
+* **parked cars** – each parked car of the first session is gone with
+  probability :data:`PARKED_GONE`; every other one is replaced by a new car
+  (new body and cabin size, reflectivity) parked at most
+  :data:`PARKED_SHIFT` metres further along the kerb;
+* **the drive** – the same route through the same corners, with other lane
+  offsets, speed profile and tilt noise (route stream of session ``k``);
+  a trajectory-file world follows the same file;
+* **moving cars** – another traffic stream;
+* **sensor** – ``--session-sensor`` (mounting height and beams differ), same
+  azimuth resolution as the preset;
+* **noise** – another range-noise and dropout stream.
+
+Poses: every ``poses.txt`` is in one frame, the camera frame of session 0's
+first scan (session 0 starts at the identity, the others do not), so no
+alignment transform is needed to evaluate one session against another.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.simulate import labels
+from lidar_iris_eval.simulate.presets import SimConfig
+from lidar_iris_eval.simulate.raycast import Primitives, make_primitives
+from lidar_iris_eval.simulate.sensors import SENSORS
+from lidar_iris_eval.simulate.world import World, car_rows
+from lidar_iris_eval.simulate.writer import atomic_write, prepare_out_dir
+
+#: probability that a parked car of session 0 is not there on another day
+PARKED_GONE = 0.5
+#: metres a replacing car may stand further along the kerb (either way)
+PARKED_SHIFT = 0.5
+#: the most sessions ``liris simulate`` writes
+MAX_SESSIONS = 8
+
+
+def session_dir(out_dir: Path, session: int) -> Path:
+    """``OUT/session<k>``."""
+    return Path(out_dir) / f"session{session}"
+
+
+def repark(world: World, rng: np.random.Generator) -> World:
+    """The same static world with other parked cars (see the module docstring).
+
+    Parked cars are the static primitives labelled ``car``; a replacing car
+    keeps its SemanticKITTI instance number and gets a new physical-object id.
+    """
+    prims = world.prims
+    objects = world.objects
+    is_car = prims.label == labels.CAR
+    keep = ~is_car
+    rows: list[tuple] = []
+    new_objects: list[int] = []
+    next_object = int(objects.max(initial=0)) + 1 if objects is not None else 1
+    for instance in np.unique(prims.instance[is_car]):
+        car = np.nonzero(is_car & (prims.instance == instance))[0]
+        if rng.random() < PARKED_GONE:
+            continue
+        body = car[0]
+        yaw = float(prims.yaw[body])
+        shift = rng.uniform(-PARKED_SHIFT, PARKED_SHIFT)
+        x = float(prims.center[body, 0]) + shift * np.cos(yaw)
+        y = float(prims.center[body, 1]) + shift * np.sin(yaw)
+        z_road = float(world.ground.elevation(np.array([x]), np.array([y]))[0][0])
+        parts = car_rows(rng, x, y, z_road, yaw, labels.CAR, int(instance))
+        rows.extend(parts)
+        new_objects.extend([next_object] * len(parts))
+        next_object += 1
+    merged = Primitives.concat([prims.take(np.nonzero(keep)[0]), make_primitives(rows)])
+    merged_objects = None
+    if objects is not None:
+        merged_objects = np.concatenate(
+            [objects[keep], np.asarray(new_objects, dtype=np.uint32)]).astype(np.uint32)
+    return World(world.ground, merged, merged_objects)
+
+
+def session_sensors(cfg: SimConfig, sessions: int, sensors: tuple[str, ...]) -> list[str]:
+    """The sensor of every session: the preset's for session 0, then ``sensors`` in
+    order (the last one repeats; none given: the preset's)."""
+    if not 1 <= sessions <= MAX_SESSIONS:
+        raise LirisError("--sessions", f"must be within 1..{MAX_SESSIONS}, got {sessions}")
+    for name in sensors:
+        if name not in SENSORS:
+            raise LirisError("--session-sensor", f"unknown sensor {name!r}; choose from "
+                             f"{', '.join(SENSORS)}")
+    if sensors and sessions == 1:
+        raise LirisError("--session-sensor", "needs --sessions 2 or more")
+    if len(sensors) > sessions - 1:
+        raise LirisError("--session-sensor",
+                         f"{len(sensors)} sensors given for {sessions - 1} later sessions")
+    out = [cfg.sensor]
+    for k in range(1, sessions):
+        out.append(sensors[min(k - 1, len(sensors) - 1)] if sensors else cfg.sensor)
+    return out
+
+
+@dataclass(frozen=True)
+class SessionsReport:
+    """What a multi-session simulation wrote."""
+
+    out_dir: Path
+    sessions: list[dict]
+    seconds: float
+
+    def summary(self) -> str:
+        parts = [f"session{s['session']}: {s['frames']} scans ({s['sensor']})"
+                 + ("" if s["queries_with_positive_in_session0"] is None else
+                    f", {s['queries_with_positive_in_session0']} within 4 m of session 0")
+                 for s in self.sessions]
+        return (f"wrote {len(self.sessions)} sessions to {self.out_dir} in "
+                f"{self.seconds:.1f} s; poses in session 0's frame; " + "; ".join(parts))
+
+
+def cross_positive_queries(query_xyz: np.ndarray, db_xyz: np.ndarray, radius: float) -> int:
+    """How many query positions have a database position closer than ``radius`` (3-D)."""
+    dist, _ = cKDTree(db_xyz).query(query_xyz, k=1)
+    return int(np.count_nonzero(dist < radius))
+
+
+def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
+                 sensors: tuple[str, ...] = (), overwrite: bool = False,
+                 progress: bool = False, preset: str | None = None) -> SessionsReport:
+    """Simulate ``sessions`` drives of one world into ``OUT/session<k>``.
+
+    Session 0 is exactly what :func:`~lidar_iris_eval.simulate.pipeline.run_simulation`
+    writes for ``cfg``; ``sessions.json`` lists every session, its sensor and
+    the shared pose frame, and how many of its scans lie within 4 m (3-D,
+    camera-frame poses) of a session-0 scan.
+    """
+    from lidar_iris_eval.simulate.pipeline import build_scenario, with_frames, write_scenario
+
+    out_dir = Path(out_dir)
+    cfg = with_frames(cfg)
+    names = session_sensors(cfg, sessions, tuple(sensors))
+    if out_dir.exists() and not out_dir.is_dir():
+        raise LirisError(out_dir, "exists and is not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
+    start = time.perf_counter()
+    origin = None
+    rows = []
+    camera = []
+    for k, sensor in enumerate(names):
+        scen = build_scenario(cfg, session=k, sensor_name=None if k == 0 else sensor)
+        if origin is None:
+            origin = scen.poses[0]
+        folder = session_dir(out_dir, k)
+        prepare_out_dir(folder, overwrite)
+        extra = None if k == 0 else {
+            "session": k,
+            "session_sensor": sensor,
+            "session_of": "session0",
+            "session_changes": "other parked cars, drive, moving cars, sensor and noise; "
+                               "the same static world",
+            "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), in the "
+                                "frame of session 0's first scan (not identity here)",
+        }
+        report = write_scenario(folder, scen, preset, start, progress, k,
+                                None if k == 0 else origin, extra)
+        rel = np.linalg.inv(origin) @ scen.poses
+        camera.append((scen.tr @ rel @ np.linalg.inv(scen.tr))[:, :3, 3])
+        rows.append({"session": k, "dir": folder.name, "sensor": sensor,
+                     "frames": report.frames, "points": report.points,
+                     "queries_with_positive_in_session0": None if k == 0 else
+                         cross_positive_queries(camera[-1], camera[0], 4.0)})
+    meta = {
+        "generator": "liris simulate --sessions",
+        "preset": preset,
+        "seed": cfg.seed,
+        "pose_frame": "every poses.txt is in the camera frame of session 0's first scan",
+        "changes_between_sessions": "parked cars (each gone with p = "
+                                    f"{PARKED_GONE:g}, else replaced within "
+                                    f"{PARKED_SHIFT:g} m), the drive, moving cars, sensor, "
+                                    "noise; static world identical",
+        "positive_count_rule": "queries_with_positive_in_session0: scans with a session-0 scan "
+                               "closer than 4 m (3-D, camera-frame poses)",
+        "sessions": rows,
+    }
+    atomic_write(out_dir / "sessions.json",
+                 (json.dumps(meta, indent=2, sort_keys=True) + "\n").encode())
+    return SessionsReport(out_dir, rows, time.perf_counter() - start)
