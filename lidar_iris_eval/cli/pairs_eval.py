@@ -9,8 +9,9 @@ from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.output import echo_json
 from lidar_iris_eval.cli.workflow import table_format
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.evaluation.report import (
-    SUMMARY_KEYS,
+from lidar_iris_eval.evaluation.metrics import SUMMARY_KEYS
+from lidar_iris_eval.runs.table import render_table
+from lidar_iris_eval.runs.writer import (
     RunWriter,
     check_run_dir,
     default_run_dir,
@@ -18,7 +19,6 @@ from lidar_iris_eval.evaluation.report import (
     pr_table,
     write_metrics,
 )
-from lidar_iris_eval.runs.table import render_table
 
 
 def evaluate_pairs_cli(seq, descriptors, pairs_text, protocols, cache_dir, workers, quiet, out,

@@ -13,9 +13,9 @@ from lidar_iris_eval.cli.output import echo_json
 from lidar_iris_eval.cli.workflow import config_extra, table_format
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.cross_session import read_transform
-from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir, json_ready
 from lidar_iris_eval.executor import check_scheduler, open_executor
 from lidar_iris_eval.runs.table import render_table
+from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, json_ready
 from lidar_iris_eval.sensors import resolve_sensor
 
 
@@ -24,10 +24,8 @@ def evaluate_sessions_cli(sequence, query_path, database_path, align_path, proto
                           settings, conv, out, overwrite, as_json, reader_options, plan,
                           export_path, scheduler) -> None:
     """Run, write and print one query/database evaluation."""
-    from lidar_iris_eval.evaluation.sessions_run import (
-        evaluate_cross_session,
-        write_cross_session,
-    )
+    from lidar_iris_eval.evaluation.sessions_run import evaluate_cross_session
+    from lidar_iris_eval.runs.sessions_writer import write_cross_session
 
     if query_path is None or database_path is None:
         raise LirisError("--query/--database", "a cross-session run needs both")

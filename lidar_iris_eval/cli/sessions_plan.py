@@ -107,13 +107,11 @@ def run_sessions_plan(plan: Path, descriptor_text, preset, params, sensor, cache
     from lidar_iris_eval.cli.workflow import config_extra
     from lidar_iris_eval.engine.plan import write_text_atomic
     from lidar_iris_eval.evaluation.cross_session import read_transform
-    from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir
-    from lidar_iris_eval.evaluation.sessions_run import (
-        evaluate_cross_session,
-        write_cross_session,
-    )
+    from lidar_iris_eval.evaluation.sessions_run import evaluate_cross_session
     from lidar_iris_eval.executor import check_scheduler, open_executor
+    from lidar_iris_eval.runs.sessions_writer import write_cross_session
     from lidar_iris_eval.runs.table import cell
+    from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir
 
     entries = read_sessions_plan(plan, descriptor_text)
     out = Path(out) if out is not None else default_run_dir(Path(plan).stem)

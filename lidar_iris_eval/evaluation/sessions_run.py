@@ -6,7 +6,8 @@ descriptors, builds the positives across sessions under the run's
 pose frame, inclusive radius; the exclusion window does not apply) and
 scores every method with
 :func:`~lidar_iris_eval.evaluation.cross_session.evaluate_sessions`.
-:func:`write_cross_session` writes a run folder ``liris show``, ``compare``,
+:func:`lidar_iris_eval.runs.sessions_writer.write_cross_session` writes a run
+folder ``liris show``, ``compare``,
 ``plot`` and ``report`` read: ``metrics.json`` (rows with ``protocol:
 "cross-session"``, Recall@N, Recall@1 %, MRR and a top-1 PR curve),
 ``config.yaml``, ``cross_session/<method>/ranks.csv`` and ``pr.csv``.
@@ -37,8 +38,8 @@ from lidar_iris_eval.evaluation.cross_session import (
     evaluate_sessions,
 )
 from lidar_iris_eval.evaluation.ground_truth import gt_coordinates
+from lidar_iris_eval.evaluation.metrics import SUMMARY_KEYS
 from lidar_iris_eval.evaluation.ranking import RANKING_DEFINITION
-from lidar_iris_eval.evaluation.report import SUMMARY_KEYS, RunWriter, pr_table, write_metrics
 from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.extract import extract
 
@@ -190,21 +191,3 @@ def evaluate_cross_session(query, database, descriptors, settings: Settings, *,
         rows.append(_row(desc, q_db, d_db, res))
     return SessionsEvaluation(query, database, settings, pose_frame, transform, results, rows,
                               time.perf_counter() - started)
-
-
-def write_cross_session(run: SessionsEvaluation, out, overwrite: bool = False, **extra) -> Path:
-    """Write the run folder (module docstring) atomically; returns its path."""
-    out = Path(out)
-    config = run.config(**extra)
-    with RunWriter(out, overwrite) as writer:
-        for desc, _, _, res in run.results:
-            base = f"cross_session/{desc.name}"
-            writer.write_csv(f"{base}/ranks.csv", {
-                "query": np.arange(len(res.match)), "match": res.match,
-                "distance": res.distance, "is_true": res.is_true,
-                "has_positive": res.ranks.has_positive, "rank": res.ranks.rank,
-            })
-            writer.write_csv(f"{base}/pr.csv", pr_table(res.curve))
-        writer.write_yaml("config.yaml", config)
-        write_metrics(writer, run.header(config), run.rows)
-    return out
