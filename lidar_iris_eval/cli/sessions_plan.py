@@ -105,7 +105,7 @@ def run_sessions_plan(plan: Path, descriptor_text, preset, params, sensor, cache
     from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import config_extra
-    from lidar_iris_eval.engine.plan import write_text_atomic
+    from lidar_iris_eval.runs.plan import write_text_atomic
     from lidar_iris_eval.evaluation.cross_session import read_transform
     from lidar_iris_eval.evaluation.sessions_run import evaluate_cross_session
     from lidar_iris_eval.executor import check_scheduler, open_executor

@@ -8,7 +8,8 @@ table or a figure.
 
 Rules:
 
-* ``results`` is a list of mappings, each with ``protocol`` 1 or 2 and a
+* ``results`` is a list of mappings, each with ``protocol`` 1, 2 or
+  ``"cross-session"`` and a
   non-empty text ``descriptor`` (``preset`` is text when present);
 * a metric (:data:`NUMBER_KEYS`, or a key with a prefix of
   :data:`NUMBER_PREFIXES`) is a finite number or null (undefined, never 0);
@@ -34,6 +35,12 @@ NUMBER_KEYS = frozenset({
 })
 #: result keys starting with one of these hold a number (or null) too
 NUMBER_PREFIXES = ("n_", "top1_", "recall_at_", "rre_", "rte_")
+#: result keys that hold a list of numbers (or nulls): the Recall@1..N curve
+NUMBER_LIST_KEYS = frozenset({"recall_at_n"})
+
+
+#: what a result row's ``protocol`` may be (cross-session: docs/cross-session.md)
+PROTOCOLS = (1, 2, "cross-session")
 
 
 def is_number_key(key: str) -> bool:
@@ -50,8 +57,9 @@ def check_metrics(metrics: Any, path: str | Path) -> None:
         if not isinstance(row, dict) or "protocol" not in row or "descriptor" not in row:
             raise LirisError(path, "every result needs 'protocol' and 'descriptor'")
         protocol = row["protocol"]
-        if isinstance(protocol, bool) or protocol not in (1, 2):
-            raise LirisError(path, f"{where}.protocol: expected 1 or 2, got {protocol!r}")
+        if isinstance(protocol, bool) or protocol not in PROTOCOLS:
+            raise LirisError(path, f"{where}.protocol: expected 1, 2 or 'cross-session', "
+                                   f"got {protocol!r}")
         if not isinstance(row["descriptor"], str) or not row["descriptor"]:
             raise LirisError(path, f"{where}.descriptor: expected a name, got "
                                    f"{row['descriptor']!r}")
@@ -62,7 +70,11 @@ def check_metrics(metrics: Any, path: str | Path) -> None:
             raise LirisError(path, f"{where}.warnings: expected a list of text, got "
                                    f"{warnings!r}")
         for key, value in row.items():
-            if is_number_key(key) and not _number_or_null(value):
+            if key in NUMBER_LIST_KEYS:
+                if not isinstance(value, list) or not all(map(_number_or_null, value)):
+                    raise LirisError(path, f"{where}.{key}: expected a list of numbers or "
+                                           f"nulls, got {value!r}")
+            elif is_number_key(key) and not _number_or_null(value):
                 raise LirisError(path, f"{where}.{key}: expected a number or null, got "
                                        f"{value!r}")
     for key in ("conventions", "sequence"):
