@@ -25,6 +25,7 @@ from lidar_iris_eval.engine import check_scheduler, use_scheduler
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.evaluation.evaluate import (
     Settings,
+    bind_exclusion,
     check_request,
     evaluate,
     export_loops,
@@ -105,6 +106,7 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
             raise LirisError(f"--export-loops {export_path}", "use a .g2o or .txt file name")
     seq = open_input(sequence, reader_options)
     descriptors += externals_for(seq)  # --external NAME=PATH
+    descriptors = bind_exclusion(descriptors, settings.exclude)  # local maps: window = E
     check_request(descriptors, protocols, settings)
     for d in descriptors:
         d.check_inputs(seq)

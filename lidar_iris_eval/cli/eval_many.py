@@ -36,7 +36,12 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
     """Evaluate every planned run under one scheduler; returns the parent folder."""
     from lidar_iris_eval.cli.extract_cmd import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import extract_all
-    from lidar_iris_eval.evaluation.evaluate import check_request, evaluate, write_run
+    from lidar_iris_eval.evaluation.evaluate import (
+        bind_exclusion,
+        check_request,
+        evaluate,
+        write_run,
+    )
     from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir
 
     check_scheduler(scheduler)
@@ -65,6 +70,7 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
                 if not quiet:
                     click.echo(f"{name}: {', '.join(d.name for d in descriptors)}, "
                                f"protocol {' and '.join(map(str, protocols))}", err=True)
+                descriptors = bind_exclusion(descriptors, settings.exclude)
                 result = evaluate(seq, descriptors, protocols, settings, cache=cache,
                                   workers=workers, progress=not quiet, convention=conv,
                                   dbs=extract_all(seq, descriptors, cache, workers, quiet))

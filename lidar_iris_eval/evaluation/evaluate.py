@@ -159,6 +159,17 @@ class Evaluation:
         }
 
 
+def bind_exclusion(descriptors, exclude: int) -> list:
+    """Descriptors with their local-map window bound to the exclusion window E.
+
+    A method that reads local maps (``bind_exclusion`` method) builds frame i's
+    map from the scans of frames ``i - E < j <= i``, so a query's map never
+    holds a database scan; the window enters its parameters (and cache key).
+    """
+    return [d.bind_exclusion(exclude) if hasattr(d, "bind_exclusion") else d
+            for d in descriptors]
+
+
 def _descriptor_list(descriptors) -> list[Descriptor]:
     from lidar_iris_eval.descriptors import get_descriptor
 
@@ -224,6 +235,8 @@ def evaluate(
     """
     settings = Settings() if settings is None else settings
     descriptors = _descriptor_list(descriptors)
+    # local-map methods build each frame's map from the last E frames (never a database scan)
+    descriptors = bind_exclusion(descriptors, settings.exclude)
     protocols = check_request(descriptors, protocols, settings)
     if isinstance(sequence, (str, os.PathLike)):
         from lidar_iris_eval.io import open_sequence
