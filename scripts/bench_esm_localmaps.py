@@ -61,8 +61,10 @@ def bench_time(seq_path: str, exclude: int, every: int) -> dict:
     a = np.asarray(out) * 1e3
     names = ["local_map_update", "segmentation", "description", "matching", "pose_estimation"]
     total = a.sum(1)
-    return {"frames": len(a), "median_ms": dict(zip(names, np.median(a, 0).round(1).tolist(), strict=True)),
-            "p90_ms": dict(zip(names, np.percentile(a, 90, 0).round(1).tolist(), strict=True)),
+    med = np.median(a, 0).round(1).tolist()
+    p90 = np.percentile(a, 90, 0).round(1).tolist()
+    return {"frames": len(a), "median_ms": dict(zip(names, med, strict=True)),
+            "p90_ms": dict(zip(names, p90, strict=True)),
             "total_median_ms": round(float(np.median(total)), 1),
             "total_p90_ms": round(float(np.percentile(total, 90)), 1)}
 

@@ -114,7 +114,7 @@ def ground_truth_options(func):
                   help="Measure distances between camera poses (KITTI, the paper) or LiDAR poses.")
     @click.option("--convention", "convention_name", default=None, metavar="NAME",
                   help="A peer's ground-truth convention: liris, scancontext-eval, logg3d, "
-                       "iris-cpp (README: Conventions); options given explicitly win.")
+                       "iris-cpp (docs/conventions.md); options given explicitly win.")
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         ctx = click.get_current_context()

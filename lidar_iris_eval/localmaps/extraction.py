@@ -1,4 +1,4 @@
-"""The extraction of methods that declare the ``local_map`` input (see extract.py).
+"""The extraction of methods that declare the ``local_map`` input (called by extract.py).
 
 For the scans ``[a, b)`` of a chunk, the local map of each frame is built by
 :func:`lidar_iris_eval.localmaps.local_maps` (the scans of the ``W - 1`` frames
@@ -48,9 +48,8 @@ def describe_local_maps(seq, descriptor, a: int, b: int, extract_s: np.ndarray,
 
 @functools.cache
 def local_map_code_hash() -> str:
-    """SHA-256 (16 hex) of the localmaps package and this module: part of the cache key."""
-    here = Path(__file__).resolve()
-    files = sorted([here, *(here.parent / "localmaps").rglob("*.py")])
+    """SHA-256 (16 hex) of the localmaps package (this module included): part of the cache key."""
+    files = sorted(Path(__file__).resolve().parent.rglob("*.py"))
     digest = hashlib.sha256()
     for path in files:
         digest.update(path.name.encode())
