@@ -90,7 +90,8 @@ def test_esm_local_maps_through_liris_eval(tmp_path, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     row = next(r for r in metrics["results"] if r["descriptor"] == "esm")
     assert row["preset"] == "local-maps"
-    assert "window" in json.dumps(metrics)
+    assert row["odometry"] == "gt" and row["local_map_window"] == 20
+    assert row["input_filter"] == "all"
     m = pd.read_csv(out / "protocol1" / "esm" / "matches.csv")
     accepted = m[np.isfinite(m["distance"])]
     # every accepted match: >= 6 consistent segments, a proper rotation, a frame <= i - E
