@@ -108,7 +108,12 @@ def descriptor_code_hash(descriptor: Descriptor) -> str:
     """
     module = sys.modules.get(type(descriptor).__module__)
     own = getattr(module, "__file__", None)
-    return _source_hash(str(Path(own).resolve()) if own else "")
+    code = _source_hash(str(Path(own).resolve()) if own else "")
+    if "local_map" in descriptor.inputs:  # the local maps it reads are built by our code
+        from lidar_iris_eval.localmaps.extraction import local_map_code_hash
+
+        code = f"{code}+{local_map_code_hash()}"
+    return code
 
 
 @functools.cache
@@ -446,7 +451,11 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
     wants = [d.wants_scan() for d in descriptors]
     i, name = a, descriptors[0].name if descriptors else "descriptor"
     try:
-        for k, i in enumerate(range(a, b)):
+        if "local_map" in descriptor.inputs:
+            from lidar_iris_eval.localmaps.extraction import describe_local_maps
+
+            outputs = describe_local_maps(seq, descriptor, a, b, extract_s, read_s, tick, _warm_up)
+        for k, i in enumerate(range(a, b) if not outputs else ()):
             t0 = time.perf_counter()
             scan = seq.scan(i) if any(wants) else None
             points = seq[i] if not all(wants) else None

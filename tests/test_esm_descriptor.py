@@ -39,18 +39,18 @@ def test_votes_rank_the_frame_with_the_same_segments_first():
     T = yaw_pose(170.0, (3.0, -1.0, 0.2))
     feats = _toy(np.random.default_rng(0), T)
     # knn 1: each of the 8 query segments votes for its twin only, weight 0.9 * 0.9
-    esm = get_descriptor("esm", knn=1)
+    esm = get_descriptor("esm", "single-scan", knn=1)
     idx, dist = esm.retrieve(esm.prepare(feats), 2, 2, 5)
     assert idx.tolist() == [0] and np.isclose(dist[0], 1 / (1 + 8 * 0.81))
     # knn 25 > 14 allowed segments: every query segment votes for all of them
-    esm = get_descriptor("esm")
+    esm = get_descriptor("esm", "single-scan")
     idx, dist = esm.retrieve(esm.prepare(feats), 2, 2, 5)
     assert idx.tolist() == [0, 1]
     assert np.allclose(dist, [1 / (1 + 64 * 0.81), 1 / (1 + 48 * 0.81)])
 
 
 def test_prosac_recovers_the_pose_and_rejects_unrelated_frames():
-    esm = get_descriptor("esm")
+    esm = get_descriptor("esm", "single-scan")
     T = yaw_pose(170.0, (3.0, -1.0, 0.2))
     db = esm.prepare(_toy(np.random.default_rng(1), T))
     esm.retrieve(db, 2, 2, 5)
@@ -134,7 +134,7 @@ def test_real_kitti_bar(kitti_dir):
     files = [root / "velodyne" / f"{i:06d}.bin" for i in (94, 95, 198, 199)]
     if not all(f.is_file() for f in files):
         pytest.skip("KITTI sample scans missing")
-    esm = get_descriptor("esm")
+    esm = get_descriptor("esm", "single-scan")
     feats = [esm.compute(np.fromfile(f, np.float32).reshape(-1, 4)[:, :3]) for f in files]
     db = esm.prepare(RaggedFeatures.from_list(feats))
     tr = read_calib(root / "calib.txt")

@@ -17,7 +17,8 @@ from lidar_iris_eval.simulate.pipeline import simulate_sequence
 def test_esm_runs_both_protocols(tmp_path, capsys):
     seq = simulate_sequence(tmp_path / "seq", "tiny-mixed", frames=60, azimuth_steps=1024)
     out = tmp_path / "run"
-    code, _, err = run_cli(["eval", seq, "-d", "esm", "--protocol", "1", "--protocol", "2",
+    code, _, err = run_cli(["eval", seq, "-d", "esm:single-scan", "--protocol", "1",
+                            "--protocol", "2",
                             "--cache-dir", tmp_path / "cache", "--out", out, "-q"], capsys)
     assert code == 0, err
     metrics = json.loads((out / "metrics.json").read_text())

@@ -24,6 +24,7 @@ from lidar_iris_eval.cli.workflow import (
 )
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.evaluation.evaluate import (
+    bind_exclusion,
     check_request,
     evaluate,
     export_loops,
@@ -154,6 +155,7 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
                              "use a .g2o, .tum or .txt file name")
     seq = open_input(sequence, reader_options)
     descriptors += externals_for(seq)  # --external NAME=PATH
+    descriptors = bind_exclusion(descriptors, settings.exclude)  # local maps: window = E
     check_request(descriptors, protocols, settings)
     for d in descriptors:
         d.check_inputs(seq)

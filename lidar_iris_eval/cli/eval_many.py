@@ -36,7 +36,7 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
     """Evaluate every planned run under one scheduler; returns the parent folder."""
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import extract_all
-    from lidar_iris_eval.evaluation.evaluate import check_request, evaluate
+    from lidar_iris_eval.evaluation.evaluate import bind_exclusion, check_request, evaluate
     from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, write_run
 
     check_scheduler(scheduler)
@@ -66,6 +66,7 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
                 if not quiet:
                     click.echo(f"{name}: {', '.join(d.name for d in descriptors)}, "
                                f"protocol {' and '.join(map(str, protocols))}", err=True)
+                descriptors = bind_exclusion(descriptors, settings.exclude)
                 result = evaluate(seq, descriptors, protocols, settings, cache=cache,
                                   workers=workers, progress=not quiet, executor=executor,
                                   dbs=extract_all(seq, descriptors, cache, workers, quiet,

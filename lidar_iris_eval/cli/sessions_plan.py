@@ -105,10 +105,10 @@ def run_sessions_plan(plan: Path, descriptor_text, preset, params, sensor, cache
     from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import config_extra
-    from lidar_iris_eval.runs.plan import write_text_atomic
     from lidar_iris_eval.evaluation.cross_session import read_transform
     from lidar_iris_eval.evaluation.sessions_run import evaluate_cross_session
     from lidar_iris_eval.executor import check_scheduler, open_executor
+    from lidar_iris_eval.runs.plan import write_text_atomic
     from lidar_iris_eval.runs.sessions_writer import write_cross_session
     from lidar_iris_eval.runs.table import cell
     from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir

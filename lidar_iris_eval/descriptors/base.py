@@ -19,7 +19,9 @@ Conventions
   batched forms. They must return exactly the numbers of ``distance``.
 * ``inputs`` names what a method reads from a scan: ``"points"`` (default),
   ``"intensity"``, ``"labels"`` (SemanticKITTI per-point labels) or
-  ``"objects"`` (an object layout's scans). The pipeline checks the sequence
+  ``"objects"`` (an object layout's scans) or ``"local_map"`` (the pipeline
+  builds each frame's local map, :mod:`lidar_iris_eval.localmaps`, and hands
+  ``compute`` a ``LocalMapFrame``). The pipeline checks the sequence
   provides them before any work and calls :meth:`Descriptor.describe`, which
   hands ``compute`` the bare points (global point descriptors) or the whole
   scan (anything that reads more, or sets ``takes_scan``).
@@ -56,7 +58,10 @@ import numpy as np
 from lidar_iris_eval.errors import LirisError
 
 #: every input a method may declare in ``Descriptor.inputs``
-KNOWN_INPUTS = frozenset({"points", "intensity", "labels", "objects"})
+KNOWN_INPUTS = frozenset({"points", "intensity", "labels", "objects", "local_map"})
+#: inputs the pipeline builds itself (``local_map``: lidar_iris_eval.localmaps, from
+#: the scans and poses every sequence has), never missing from a sequence
+BUILT_INPUTS = frozenset({"local_map"})
 
 
 @dataclass(frozen=True)
@@ -180,7 +185,7 @@ class Descriptor(abc.ABC):
         unknown = set(self.inputs) - KNOWN_INPUTS
         if unknown:
             raise ValueError(f"{self.name}.inputs has unknown names {sorted(unknown)}")
-        provides = set(getattr(sequence, "provides", {"points", "intensity"}))
+        provides = set(getattr(sequence, "provides", {"points", "intensity"})) | BUILT_INPUTS
         missing = sorted(set(self.inputs) - provides)
         if not missing:
             return

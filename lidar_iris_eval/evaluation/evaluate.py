@@ -165,6 +165,17 @@ class Evaluation:
         }
 
 
+def bind_exclusion(descriptors, exclude: int) -> list:
+    """Descriptors with their local-map window bound to the exclusion window E.
+
+    A method that reads local maps (``bind_exclusion`` method) builds frame i's
+    map from the scans of frames ``i - E < j <= i``, so a query's map never
+    holds a database scan; the window enters its parameters (and cache key).
+    """
+    return [d.bind_exclusion(exclude) if hasattr(d, "bind_exclusion") else d
+            for d in descriptors]
+
+
 def _descriptor_list(descriptors) -> list[Descriptor]:
     from lidar_iris_eval.descriptors import get_descriptor
 
@@ -246,6 +257,8 @@ def evaluate(
                                       pair_budget=settings.pair_budget)
     loop_settings = lp.LoopPoseSettings() if loop_settings is None else loop_settings
     descriptors = _descriptor_list(descriptors)
+    # local-map methods build each frame's map from the last E frames (never a database scan)
+    descriptors = bind_exclusion(descriptors, settings.exclude)
     protocols = check_request(descriptors, protocols, settings)
     if isinstance(sequence, (str, os.PathLike)):
         from lidar_iris_eval.io import open_sequence
@@ -362,6 +375,10 @@ def _rows(desc, db, p1, p2, settings) -> list[dict]:
     qualifiers = list(getattr(db, "warnings", ()) or ())
     if qualifiers:  # a warning that qualifies the numbers travels with them (runs/schema.py)
         base["warnings"] = qualifiers
+    if "local_map" in desc.inputs:  # what built its local maps (odometry: gt is an oracle)
+        lm = desc.local_map_settings()
+        base.update(local_map_window=lm.window, odometry=lm.odometry,
+                    input_filter=lm.input_filter)
     rows = []
     if p1 is not None:
         matches = p1.matches

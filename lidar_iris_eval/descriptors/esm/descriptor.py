@@ -1,6 +1,18 @@
 """ESM (Tinchev, Penate-Sanchez and Fallon, RA-L 2019): learned segment descriptors.
 
-A two-stage method (``descriptors/base.py``):
+Two modes (``source``):
+
+* ``local-map`` (the default, the authors' setting: SegMap's pipeline with
+  ESM's network and PROSAC): the pipeline builds the local map of every frame
+  (:mod:`lidar_iris_eval.localmaps`, the scans of the last ``window`` frames,
+  ``window`` = the evaluation's E); its segments are the frame's features
+  (:mod:`.local_segments`); a query is matched against the target map of the
+  segments of every frame ``<= i - E`` (:mod:`.target_map`), which gives one
+  matched frame and a 6-DoF pose;
+* ``scan`` (preset ``single-scan``, not the authors' setting): each scan is
+  segmented alone and matched frame against frame, as below.
+
+The single-scan mode is a two-stage method (``descriptors/base.py``):
 
 * **describe**: segments (:mod:`.segmentation`), each embedded in 16-d by the
   shipped network (:mod:`.network`, NumPy only) with a quality in [0, 1];
@@ -27,6 +39,7 @@ A two-stage method (``descriptors/base.py``):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -35,11 +48,16 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor, Verification
 from lidar_iris_eval.descriptors.esm import network
+from lidar_iris_eval.descriptors.esm.local_segments import segment_local_map
 from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams, segment_scan
+from lidar_iris_eval.descriptors.esm.target_map import Localisation, localise, target_lifetimes
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.matching.geometry import prosac_rigid
 
 _GROUND = ("auto", "labels", "height")
+_SOURCES = ("local-map", "scan")
+#: the local-map window when no evaluation binds it to its E (the "paper" E, 30 frames)
+DEFAULT_WINDOW = 30
 
 
 @dataclass(frozen=True)
@@ -62,8 +80,30 @@ class ESMParams:
     confidence: float = 0.99
     num_candidates: int = 10
     weights: str = ""  # "" = the weights shipped in the package
+    # local-map mode (SegMap's pipeline); see the module docstring
+    source: str = "local-map"
+    window: int = 0  # W frames per local map; 0 = the evaluation's E
+    input_filter: str = "all"  # localmaps.filters: "segmap" (every 9th point) or "all"
+    odometry: str = "gt"  # the poses that place scans: "gt" or "kiss-icp"
+    map_radius: float = 50.0  # the local map's cylinder (m)
+    dedup: float = 2.0  # target-map duplicate radius (m)
+    consistency: float = 0.6  # centroid-consistency / inlier threshold (m)
+    min_consistent: int = 6  # SegMap's minimum cluster size on accumulated maps
+    min_target: int = 50  # SegMap matches only once the target holds this many segments
+    frame_rule: str = "estimate"  # matched frame: "estimate" or SegMap's "segments"
+    max_offset: float = 4.0  # "estimate": reject when the nearest frame is farther (m)
 
     def __post_init__(self) -> None:
+        if self.source not in _SOURCES:
+            raise LirisError("esm.source", f"must be one of {', '.join(_SOURCES)}, "
+                                           f"got {self.source!r}")
+        if int(self.window) < 0:
+            raise LirisError("esm.window", "must be 0 (the evaluation's E) or positive")
+        if self.frame_rule not in ("estimate", "segments"):
+            raise LirisError("esm.frame_rule", "must be 'estimate' or 'segments', "
+                                               f"got {self.frame_rule!r}")
+        if int(self.min_consistent) < 3:
+            raise LirisError("esm.min_consistent", "a rigid fit needs at least 3 pairs")
         if self.ground not in _GROUND:
             raise LirisError("esm.ground", f"must be one of {', '.join(_GROUND)}, "
                                            f"got {self.ground!r}")
@@ -85,6 +125,10 @@ class ESMDatabase:
     frame_of: np.ndarray
     sq: np.ndarray = field(init=False)
     cache: dict = field(default_factory=dict)
+    # local-map mode: world centroids, per-frame poses, target-map lifetimes
+    world: np.ndarray | None = None
+    poses: np.ndarray | None = None
+    alive_until: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.sq = (self.embedding.astype(np.float64) ** 2).sum(1)
@@ -109,6 +153,43 @@ class ESM(Descriptor):
         super().__init__(params, preset)
         self._weights = None
         self.timing = {"segmentation": 0.0, "description": 0.0, "scans": 0}
+        if self.local_map:  # the pipeline builds a local map per frame (extract.py)
+            self.inputs = frozenset({"points", "local_map"})
+
+    # ------------------------------------------------------------------ local maps
+
+    @property
+    def local_map(self) -> bool:
+        """True in the local-map mode (SegMap's pipeline)."""
+        return self.params.source == "local-map"
+
+    @property
+    def window(self) -> int:
+        """W, the frames of one local map (``DEFAULT_WINDOW`` until an evaluation binds it)."""
+        return int(self.params.window) or DEFAULT_WINDOW
+
+    def bind_exclusion(self, exclude: int) -> ESM:
+        """This descriptor with ``window`` set to the evaluation's E (when it is 0).
+
+        A window larger than E would put database scans in a query's local map.
+        """
+        if not self.local_map:
+            return self
+        if self.params.window == 0:
+            return type(self)(dataclasses.replace(self.params, window=int(exclude)), self.preset)
+        if self.params.window > exclude:
+            raise LirisError("esm.window", f"{self.params.window} frames is more than the "
+                             f"exclusion window E = {exclude}: a query's local map would hold "
+                             "database scans")
+        return self
+
+    def local_map_settings(self):
+        """The :class:`~lidar_iris_eval.localmaps.LocalMapSettings` of this descriptor."""
+        from lidar_iris_eval.localmaps import LocalMapSettings
+
+        p = self.params
+        return LocalMapSettings(window=self.window, voxel=p.voxel, radius=p.map_radius,
+                                input_filter=p.input_filter, odometry=p.odometry)
 
     # ------------------------------------------------------------------ describe
 
@@ -133,7 +214,9 @@ class ESM(Descriptor):
         return self.compute(scan)
 
     def compute(self, scan: Any) -> dict[str, np.ndarray]:  # type: ignore[override]
-        """Feature set of one scan (a Scan, or bare (N, 3+) points)."""
+        """Feature set of one scan (a Scan, or bare (N, 3+) points), or of one local map."""
+        if self.local_map:
+            return self.compute_local_map(scan)
         points = getattr(scan, "points", scan)
         labels = getattr(scan, "labels", None)
         if self.params.ground == "height":
@@ -154,6 +237,32 @@ class ESM(Descriptor):
         return {"embedding": emb.astype(np.float32), "quality": q.astype(np.float64),
                 "centroids": segs.centroids.astype(np.float64)}
 
+    def compute_local_map(self, frame: Any) -> dict[str, np.ndarray]:
+        """Feature set of one :class:`~lidar_iris_eval.localmaps.LocalMapFrame`.
+
+        ``centroids`` are in the frame's LiDAR frame, ``world`` in the world
+        frame of the odometry, ``pose`` the frame's world-from-LiDAR pose.
+        """
+        if not hasattr(frame, "pose"):
+            raise LirisError("esm.source", "is 'local-map' but was given a scan; use the "
+                                           "single-scan preset (-d esm:single-scan) on scans")
+        t0 = time.thread_time()
+        pts, world, sizes = segment_local_map(frame.points, self.segment_params)
+        t1 = time.thread_time()
+        w, arch = self.weights()
+        emb = network.embed(w, arch, pts)
+        q = network.quality(w, emb) if len(emb) else np.zeros(0)
+        t2 = time.thread_time()
+        self.timing["segmentation"] += t1 - t0
+        self.timing["description"] += t2 - t1
+        self.timing["scans"] += 1
+        pose = np.asarray(frame.pose, dtype=np.float64)
+        inv = np.linalg.inv(pose)
+        local = world @ inv[:3, :3].T + inv[:3, 3] if len(world) else np.zeros((0, 3))
+        return {"embedding": emb.astype(np.float32), "quality": q.astype(np.float64),
+                "centroids": local.astype(np.float64), "world": world.astype(np.float64),
+                "sizes": sizes.astype(np.int64), "pose": pose.reshape(1, 4, 4)}
+
     # ------------------------------------------------------------------ stage 1
 
     def prepare(self, features: Any) -> ESMDatabase:
@@ -166,12 +275,41 @@ class ESM(Descriptor):
             parts = [np.asarray(f[key], dtype=dtype).reshape(-1, width) for f in frames]
             return np.concatenate(parts) if parts else np.zeros((0, width), dtype)
 
-        return ESMDatabase(
+        db = ESMDatabase(
             embedding=flat("embedding", np.float32, 16),
             quality=flat("quality", np.float64, 1)[:, 0],
             centroids=flat("centroids", np.float64, 3), offsets=offsets,
             frame_of=np.repeat(np.arange(n), sizes),
         )
+        if self.local_map:
+            if frames and "world" not in frames[0]:
+                raise LirisError("esm.source", "'local-map' needs features of local maps")
+            db.world = flat("world", np.float64, 3)
+            db.poses = flat("pose", np.float64, 16).reshape(-1, 4, 4)
+            db.alive_until = target_lifetimes(db.world, db.frame_of, n, self.params.dedup,
+                                              self.window)
+        return db
+
+    def localisation(self, db: ESMDatabase, query: int, n_allowed: int) -> Localisation:
+        """The query's local map against the target of frames ``[0, n)``, ``n <= i - W + 1``."""
+        p = self.params
+        n = min(int(n_allowed), int(query) - self.window + 1, len(db))
+        key = ("loc", int(query), n)
+        if key in db.cache:
+            return db.cache[key]
+        loc = Localisation(-1, np.full((4, 4), np.nan), 0, float("nan"), 0)
+        if n > 0:
+            t = np.nonzero((db.frame_of < n) & (db.alive_until >= n))[0]
+            q = db.rows(int(query))
+            if len(t) >= p.min_target and q.stop > q.start:
+                loc = localise(db.embedding[q], db.quality[q], db.centroids[q],
+                               db.embedding[t], db.quality[t], db.world[t], t,
+                               db.poses[:n, :3, 3], knn=p.knn, threshold=p.consistency,
+                               min_consistent=p.min_consistent, iterations=p.iterations,
+                               frame_rule=p.frame_rule, max_offset=p.max_offset)
+        db.cache.clear()
+        db.cache[key] = loc
+        return loc
 
     def segment_knn(self, db: ESMDatabase, query: int, n_allowed: int):
         """Each query segment's ``knn`` nearest segments in frames ``[0, n_allowed)``."""
@@ -197,7 +335,16 @@ class ESM(Descriptor):
         return out
 
     def retrieve(self, db: ESMDatabase, query: int, n_allowed: int, k: int):
-        """Frames ranked by quality-weighted votes of the segments' k-NN."""
+        """Frames ranked by quality-weighted votes of the segments' k-NN.
+
+        In the local-map mode: the one frame the target-map match gives (none
+        when it is rejected); frames later than ``query - W`` are never allowed.
+        """
+        if self.local_map:
+            loc = self.localisation(db, query, n_allowed)
+            if loc.frame < 0:
+                return np.zeros(0, np.int64), np.zeros(0)
+            return np.array([loc.frame], np.int64), np.array([1.0 / (1.0 + loc.inliers)])
         nn, _ = self.segment_knn(db, query, n_allowed)
         if nn.size == 0:
             return np.zeros(0, np.int64), np.zeros(0)
@@ -230,6 +377,16 @@ class ESM(Descriptor):
         score = np.full(k, np.inf)
         pose = np.tile(np.full((4, 4), np.nan), (k, 1, 1))
         inliers = np.zeros(k, np.int64)
+        if self.local_map:
+            cached = [key for key in db.cache if key[0] == "loc" and key[1] == query]
+            n = cached[0][2] if cached else (int(candidates.max()) + 1 if k else 0)
+            loc = self.localisation(db, query, n)
+            for c, cand in enumerate(candidates):
+                if loc.frame >= 0 and int(cand) == loc.frame:
+                    score[c] = 1.0 / (1.0 + loc.inliers) + 1e-3 * loc.residual
+                    pose[c] = loc.world_to_query @ db.poses[loc.frame]
+                    inliers[c] = loc.inliers
+            return Verification(score=score, pose=pose, inliers=inliers)
         # the k-NN of the retrieval step, or (verify alone) over frames up to the last candidate
         cached = [key for key in db.cache if key[0] == query]
         n_allowed = cached[0][1] if cached else (int(candidates.max()) + 1 if k else 0)

@@ -28,7 +28,7 @@ def kitti_report(root: Path, repeats: int = 3) -> dict:
     from lidar_iris_eval.io.poses import read_calib, read_kitti_poses
     from lidar_iris_eval.matching.geometry import rotation_error_deg, translation_error_m
 
-    esm = get_descriptor("esm")
+    esm = get_descriptor("esm", "single-scan")
     clouds = [np.fromfile(root / "velodyne" / f"{i:06d}.bin", np.float32).reshape(-1, 4)[:, :3]
               for i in SCANS]
     esm.compute(clouds[0])  # warm-up (numba compilation, weight loading)

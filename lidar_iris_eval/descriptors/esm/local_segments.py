@@ -1,0 +1,55 @@
+"""Segments of one local map (SegMap's segmenter on its accumulated voxel map).
+
+The local map (:mod:`lidar_iris_eval.localmaps`) is already a 0.1 m voxel grid
+of filtered scans in the world frame; its voxel centroids are grown into
+Euclidean clusters at ``radius`` (0.2 m), clusters of ``min_points`` to
+``max_points`` voxels (100-15,000) are segments, each resampled to the
+network's 256 points and normalised exactly as single-scan segments are
+(:func:`~lidar_iris_eval.descriptors.esm.segmentation.normalise`).
+
+Segmentation is redone at every frame (not SegMap's incremental segmenter with
+persistent ids): the map of frame ``i`` gives the same segments whatever frame
+extraction started from.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lidar_iris_eval.descriptors.esm.segmentation import (
+    SegmentParams,
+    euclidean_clusters,
+    normalise,
+    resample,
+)
+
+
+def segment_local_map(world_points: np.ndarray, params: SegmentParams):
+    """Segments of a local map's voxel centroids ``(M, 3)`` (world frame).
+
+    Returns ``(points (S, n_points, 3) float32, world centroids (S, 3), sizes (S,))``;
+    segments are ordered by their first voxel (key order), segment ``s`` is
+    resampled with the stream ``[seed, s]``.
+    """
+    pts = np.asarray(world_points, dtype=np.float64)
+    empty = (np.zeros((0, params.n_points, 3), np.float32), np.zeros((0, 3)),
+             np.zeros(0, np.int64))
+    if len(pts) == 0:
+        return empty
+    comp = euclidean_clusters(pts, params.radius)
+    counts = np.bincount(comp)
+    good = np.nonzero((counts >= params.min_points) & (counts <= params.max_points))[0]
+    if len(good) == 0:
+        return empty
+    order = np.argsort(comp, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    out, cents, sizes = [], [], []
+    for s, c in enumerate(good):
+        seg = pts[order[bounds[c]:bounds[c + 1]]]
+        rng = np.random.default_rng([params.seed, s])
+        normed, _ = normalise(resample(seg, params.n_points, rng), params.norm_scale,
+                              params.align_yaw)
+        out.append(normed)
+        cents.append(seg.mean(axis=0))
+        sizes.append(len(seg))
+    return np.stack(out), np.asarray(cents), np.asarray(sizes, dtype=np.int64)

@@ -1,0 +1,186 @@
+"""SegMap's target map and ESM's verification on local maps.
+
+**Target map** (ethz-asl/segmap ``SegMatch::filterDuplicateSegmentsOfTargetMap``):
+the segments of each frame's local map enter the target in frame order; a new
+segment whose centroid is within ``dedup`` (2 m) of a target segment either
+replaces it (the target segment was seen recently: fewer than ``window``
+frames earlier, SegMap's 60 s) or is dropped (an old segment: a revisit keeps
+the first view). :func:`target_lifetimes` turns that process into, per
+segment, the range of database sizes it is alive for, so the target for "the
+frames ``[0, n)``" is one mask and does not depend on the order queries ask.
+
+**Verification** (:func:`localise`): per query segment its ``K = min(knn, N - 1)``
+nearest target segments (squared L2 in the 16-d embedding); the
+correspondences are ordered by the product of their qualities (PROSAC's
+order). Two correspondences are *consistent* when the distance between their
+query centroids and between their target centroids differ by at most
+``threshold`` (SegMap's centroid consistency, 0.6 m). Hypotheses are seeded in
+PROSAC order: from each of the first ``iterations`` correspondences a
+consistent set is grown greedily (in the same order; a set never uses a query
+or a target segment twice); a set of at least ``min_consistent`` (SegMap's 6)
+gives a rigid fit (Kabsch) whose inliers (residual <= threshold, one per query
+segment) are counted; the fit with the most inliers wins (ties: the earlier
+seed). The matched frame (``frame_rule``):
+
+* ``estimate`` (default): the database frame whose odometry position is nearest
+  the query's position the fit estimates in the world; rejected when that
+  frame is farther than ``max_offset`` (4 m) from it. A local map reaches
+  50 m, so a query also localises correctly against the target segments of
+  the frames just before its window (22 m back on ``small-mixed``): that is
+  a correct localisation but not a revisit, and the fit itself says so;
+* ``segments`` (SegMap's ``findTimeOfClosestPose``): the database frame whose
+  position is nearest, in total distance, to the inlier target centroids;
+  measured in docs/esm.md (it labels most of those localisations as
+  matches 10-20 m away).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lidar_iris_eval.matching.geometry import kabsch
+
+
+def target_lifetimes(world: np.ndarray, frame_of: np.ndarray, n_frames: int, dedup: float,
+                     recent: int) -> np.ndarray:
+    """Per segment the last database size ``n`` it is in the target for (``-1``: never).
+
+    Segment ``s`` of frame ``f`` is in the target of the frames ``[0, n)`` when
+    ``f < n <= alive_until[s]``. Frame ``f``'s segments are added when the
+    database grows to ``f + 1`` frames; a target segment replaced by frame
+    ``k`` is alive until ``n = k``.
+    """
+    inf = np.iinfo(np.int64).max
+    alive_until = np.full(len(frame_of), inf, np.int64)
+    starts = np.searchsorted(frame_of, np.arange(n_frames + 1))
+    alive: list[int] = []
+    for f in range(n_frames):
+        new = np.arange(starts[f], starts[f + 1])
+        if len(new) == 0:
+            continue
+        if alive:
+            alive_arr = np.asarray(alive, np.int64)
+            tree = cKDTree(world[alive_arr])
+            near = tree.query_ball_point(world[new], dedup)
+            drop_old: set[int] = set()
+            keep_new = np.ones(len(new), bool)
+            for a, hits in enumerate(near):
+                for h in sorted(hits):
+                    old = int(alive_arr[h])
+                    if frame_of[old] > f - recent:
+                        drop_old.add(old)  # seen recently: the newer view replaces it
+                    else:
+                        keep_new[a] = False  # a revisit: the old view stays
+            for old in drop_old:
+                alive_until[old] = f
+            alive = [s for s in alive if s not in drop_old]
+            alive_until[new[~keep_new]] = -1
+            alive.extend(int(s) for s in new[keep_new])
+        else:
+            alive.extend(int(s) for s in new)
+    return alive_until
+
+
+@dataclass(frozen=True)
+class Localisation:
+    """The outcome of one query against a target map."""
+
+    frame: int  # matched database frame, -1 when rejected
+    world_to_query: np.ndarray  # (4, 4), NaN when rejected
+    inliers: int
+    residual: float  # mean inlier residual (m), NaN when rejected
+    hypotheses: int
+    seconds: tuple = (0.0, 0.0)  # CPU time of (matching: k-NN + consistency, pose estimation)
+
+
+def _rejected(hyp: int = 0, inliers: int = 0, seconds=(0.0, 0.0)) -> Localisation:
+    return Localisation(-1, np.full((4, 4), np.nan), inliers, float("nan"), hyp, seconds)
+
+
+def localise(q_emb, q_qual, q_cent, t_emb, t_qual, t_world, t_ids, positions, *, knn: int,
+             threshold: float, min_consistent: int, iterations: int,
+             frame_rule: str = "estimate", max_offset: float = 4.0) -> Localisation:
+    """Match query segments against target segments (module docstring).
+
+    ``q_cent`` are query centroids in the query's LiDAR frame, ``t_world``
+    target centroids in the world frame, ``t_ids`` their global row ids (for
+    tie-breaking), ``positions`` the ``(n, 3)`` odometry positions of the
+    allowed database frames.
+    """
+    nq, nt = len(q_emb), len(t_emb)
+    if nq == 0 or nt < 2:
+        return _rejected()
+    t0 = time.thread_time()
+    k = min(knn, nt - 1)
+    qe, te = q_emb.astype(np.float64), t_emb.astype(np.float64)
+    d2 = (qe**2).sum(1)[:, None] + (te**2).sum(1)[None, :] - 2.0 * qe @ te.T
+    nn = np.argpartition(d2, k - 1, axis=1)[:, :k]
+    qa = np.repeat(np.arange(nq), k)
+    tb = nn.ravel()
+    prod = q_qual[qa] * t_qual[tb]
+    dist = d2[qa, tb]
+    order = np.lexsort((t_ids[tb], qa, dist, -prod))
+    qa, tb = qa[order], tb[order]
+    src, dst = t_world[tb], q_cent[qa]
+    ds = np.linalg.norm((src[:, None] - src[None]).astype(np.float32), axis=2)
+    dd = np.linalg.norm((dst[:, None] - dst[None]).astype(np.float32), axis=2)
+    ok = np.abs(ds - dd) <= threshold
+    del ds, dd
+    ok &= qa[:, None] != qa[None, :]
+    ok &= tb[:, None] != tb[None, :]
+    degree = ok.sum(1)
+    t1 = time.thread_time()
+    best = None
+    n = len(qa)
+    tried = 0
+    for seed in range(min(iterations, n)):
+        tried += 1
+        if degree[seed] + 1 < min_consistent:
+            continue
+        members = [seed]
+        allowed = ok[seed].copy()
+        while allowed.any():  # the next consistent correspondence in PROSAC order
+            c = int(np.argmax(allowed))
+            members.append(c)
+            allowed &= ok[c]
+        if len(members) < min_consistent:
+            continue
+        m = np.asarray(members)
+        T = kabsch(src[m], dst[m])
+        resid = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
+        inl = _one_per_query(resid, qa, threshold)
+        if len(inl) >= 3:
+            T = kabsch(src[inl], dst[inl])
+            resid = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
+            inl = _one_per_query(resid, qa, threshold)
+        score = (len(inl), -seed)
+        if best is None or score > best[0]:
+            best = (score, T, inl, resid)
+    seconds = (t1 - t0, time.thread_time() - t1)
+    if best is None or best[0][0] < min_consistent:
+        return _rejected(tried, 0 if best is None else best[0][0], seconds)
+    _, T, inl, resid = best
+    if frame_rule == "segments":  # SegMap: least total distance to the matched targets
+        total = np.linalg.norm(positions[:, None, :] - src[inl][None], axis=2).sum(1)
+        frame = int(np.argmin(total))  # ties: the earlier frame
+    else:  # the frame nearest the query's estimated position in the world
+        where = np.linalg.inv(T)[:3, 3]
+        offset = np.linalg.norm(positions - where, axis=1)
+        frame = int(np.argmin(offset))
+        if offset[frame] > max_offset:
+            return _rejected(tried, len(inl), seconds)
+    return Localisation(frame, T, len(inl), float(resid[inl].mean()), tried, seconds)
+
+
+def _one_per_query(resid: np.ndarray, qa: np.ndarray, threshold: float) -> np.ndarray:
+    """Inlier correspondences, the smallest residual per query segment (ties: earlier)."""
+    idx = np.nonzero(resid <= threshold)[0]
+    if len(idx) == 0:
+        return idx
+    idx = idx[np.lexsort((idx, resid[idx], qa[idx]))]
+    first = np.concatenate([[True], qa[idx][1:] != qa[idx][:-1]])
+    return np.sort(idx[first])

@@ -1,0 +1,200 @@
+"""The incremental voxel grid of a local map (SegMap's ``local_map.hpp`` with a scan window).
+
+:class:`VoxelWindow` keeps, per occupied voxel, the number of points and the
+integer sum of their coordinates in millimetres, so a voxel's centroid is
+exact and does not depend on the order scans were added or dropped: the map
+of frame ``i`` is the same whether it was built from frame 0 or from frame
+``i - W + 1`` (chunked extraction relies on it). Per frame:
+
+1. **add** scan ``i`` (already filtered, in the world frame);
+2. **drop** scan ``i - W`` (its points leave the voxels it fed; a voxel with
+   no point left is removed);
+3. **crop**: every voxel whose centre is farther than ``radius`` (horizontal)
+   from pose ``i`` is removed for good, from the map and from the stored scans
+   (SegMap drops far voxels the same way), so memory is bounded by the
+   cylinder, not the sequence.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+_BITS = 21
+_OFFSET = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+
+
+def encode(ijk: np.ndarray) -> np.ndarray:
+    """One int64 key per integer voxel index ``(n, 3)`` (each within +-2^20)."""
+    v = np.asarray(ijk, dtype=np.int64) + _OFFSET
+    if len(v) and (v.min() < 0 or v.max() > _MASK):
+        raise ValueError("voxel index out of range (more than 2^20 voxels from the origin)")
+    return (v[:, 0] << (2 * _BITS)) | (v[:, 1] << _BITS) | v[:, 2]
+
+
+def decode(keys: np.ndarray) -> np.ndarray:
+    """Integer voxel indices ``(n, 3)`` of keys made by :func:`encode`."""
+    k = np.asarray(keys, dtype=np.int64)
+    return np.stack([(k >> (2 * _BITS)) & _MASK, (k >> _BITS) & _MASK, k & _MASK], 1) - _OFFSET
+
+
+@dataclass
+class _Contribution:
+    frame: int
+    keys: np.ndarray  # (m,) sorted unique
+    counts: np.ndarray  # (m,) int64
+    sums: np.ndarray  # (m, 3) int64 millimetres
+
+
+@dataclass(frozen=True)
+class LocalMapFrame:
+    """The local map of one frame.
+
+    Attributes
+    ----------
+    frame : the frame ``i``.
+    pose : ``(4, 4)`` world-from-LiDAR pose of frame ``i`` (of the odometry used).
+    points : ``(M, 3)`` float64 voxel centroids in the world frame, by voxel key.
+    counts : ``(M,)`` points per voxel.
+    last_seen : ``(M,)`` the latest frame whose scan fed each voxel.
+    frames : the frames whose scans the map holds, oldest first.
+    """
+
+    frame: int
+    pose: np.ndarray
+    points: np.ndarray
+    counts: np.ndarray
+    last_seen: np.ndarray
+    frames: tuple[int, ...]
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def local_points(self) -> np.ndarray:
+        """The voxel centroids in frame ``i``'s LiDAR frame."""
+        inv = np.linalg.inv(self.pose)
+        return self.points @ inv[:3, :3].T + inv[:3, 3]
+
+
+class VoxelWindow:
+    """A voxel grid of the last ``window`` scans, cropped to a cylinder (module docstring)."""
+
+    def __init__(self, window: int, voxel: float = 0.1, radius: float = 50.0):
+        if window < 1:
+            raise ValueError("window must be at least 1")
+        self.window, self.radius = int(window), float(radius)
+        self.voxel_mm = int(round(voxel * 1000))
+        if self.voxel_mm < 1:
+            raise ValueError("voxel must be at least 1 mm")
+        self.keys = np.zeros(0, np.int64)
+        self.counts = np.zeros(0, np.int64)
+        self.sums = np.zeros((0, 3), np.int64)
+        self.last = np.zeros(0, np.int64)
+        self.scans: deque[_Contribution] = deque()
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    # ------------------------------------------------------------------ updates
+
+    def add(self, frame: int, world_points: np.ndarray) -> None:
+        """Feed the scan of ``frame`` (``(n, 3)`` world-frame points)."""
+        if self.scans and frame <= self.scans[-1].frame:
+            raise ValueError(f"frames must increase: {frame} after {self.scans[-1].frame}")
+        mm = np.rint(np.asarray(world_points, dtype=np.float64)[:, :3] * 1000.0).astype(np.int64)
+        keys = encode(np.floor_divide(mm, self.voxel_mm))
+        uniq, inv = np.unique(keys, return_inverse=True)
+        counts = np.bincount(inv, minlength=len(uniq)).astype(np.int64)
+        sums = np.zeros((len(uniq), 3), np.int64)
+        for axis in range(3):  # exact integer sums (bincount would go through float64)
+            order = np.argsort(inv, kind="stable")
+            bounds = np.concatenate([[0], np.cumsum(counts)])
+            csum = np.concatenate([[0], np.cumsum(mm[order, axis])])
+            sums[:, axis] = csum[bounds[1:]] - csum[bounds[:-1]]
+        self.scans.append(_Contribution(int(frame), uniq, counts, sums))
+        pos = np.searchsorted(self.keys, uniq)
+        present = pos < len(self.keys)
+        present[present] = self.keys[pos[present]] == uniq[present]
+        hit = pos[present]
+        self.counts[hit] += counts[present]
+        self.sums[hit] += sums[present]
+        self.last[hit] = frame
+        new = ~present
+        keys_all = np.concatenate([self.keys, uniq[new]])
+        order = np.argsort(keys_all, kind="stable")
+        self.keys = keys_all[order]
+        self.counts = np.concatenate([self.counts, counts[new]])[order]
+        self.sums = np.concatenate([self.sums, sums[new]])[order]
+        self.last = np.concatenate([self.last, np.full(int(new.sum()), frame, np.int64)])[order]
+
+    def drop_before(self, frame: int) -> None:
+        """Drop every stored scan of a frame ``<= frame - window`` (the window rule)."""
+        while self.scans and self.scans[0].frame <= frame - self.window:
+            c = self.scans.popleft()
+            pos = np.searchsorted(self.keys, c.keys)  # every key is present (invariant)
+            self.counts[pos] -= c.counts
+            self.sums[pos] -= c.sums
+            self._keep(self.counts > 0)
+
+    def crop(self, centre_xy: np.ndarray) -> None:
+        """Remove for good every voxel whose centre is farther than ``radius`` away."""
+        far = ~self._inside(self.keys, centre_xy)
+        if not far.any():
+            return
+        self._keep(~far)
+        for c in self.scans:
+            keep = self._inside(c.keys, centre_xy)
+            if not keep.all():
+                c.keys, c.counts, c.sums = c.keys[keep], c.counts[keep], c.sums[keep]
+
+    # ------------------------------------------------------------------ reading
+
+    def centroids(self) -> np.ndarray:
+        """``(M, 3)`` voxel centroids in metres (world frame), in key order."""
+        return self.sums / self.counts[:, None] / 1000.0
+
+    def frames(self) -> tuple[int, ...]:
+        return tuple(c.frame for c in self.scans)
+
+    def stored_voxels(self) -> int:
+        """Voxels held by the stored scans (the memory besides the map itself)."""
+        return int(sum(len(c.keys) for c in self.scans))
+
+    # ------------------------------------------------------------------ helpers
+
+    def _inside(self, keys: np.ndarray, centre_xy: np.ndarray) -> np.ndarray:
+        centre = (decode(keys)[:, :2] + 0.5) * (self.voxel_mm / 1000.0)
+        d2 = ((centre - np.asarray(centre_xy, dtype=np.float64)[:2]) ** 2).sum(axis=1)
+        return d2 <= self.radius**2
+
+    def _keep(self, mask: np.ndarray) -> None:
+        self.keys, self.counts = self.keys[mask], self.counts[mask]
+        self.sums, self.last = self.sums[mask], self.last[mask]
+
+
+class LocalMap:
+    """Frame-by-frame local maps: filter, place, add, drop, crop (module docstring)."""
+
+    def __init__(self, window: int, voxel: float = 0.1, radius: float = 50.0,
+                 input_filter=None):
+        from lidar_iris_eval.localmaps.filters import INPUT_FILTERS
+
+        self.grid = VoxelWindow(window, voxel, radius)
+        self.filter = input_filter if input_filter is not None else INPUT_FILTERS["segmap"]
+
+    def update(self, frame: int, points: np.ndarray, pose: np.ndarray) -> None:
+        """Add the scan of ``frame`` (sensor-frame points, world-from-LiDAR ``pose``)."""
+        pose = np.asarray(pose, dtype=np.float64)
+        kept = self.filter.apply(points)
+        self.grid.add(frame, kept @ pose[:3, :3].T + pose[:3, 3])
+        self.grid.drop_before(frame)
+        self.grid.crop(pose[:2, 3])
+
+    def frame(self, frame: int, pose: np.ndarray) -> LocalMapFrame:
+        """The current map as a :class:`LocalMapFrame` of ``frame``."""
+        g = self.grid
+        return LocalMapFrame(int(frame), np.asarray(pose, dtype=np.float64), g.centroids(),
+                             g.counts.copy(), g.last.copy(), g.frames())
