@@ -161,6 +161,7 @@ def extract(
     workers: int = 1,
     progress: bool = False,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
+    executor=None,
 ) -> DescriptorDB:
     """Compute (or load) the descriptors of every scan of ``seq``.
 
@@ -173,7 +174,12 @@ def extract(
     workers : processes to use; 1 computes in this process.
     progress : show a tqdm bar on stderr.
     chunk_size : scans per chunk (unit of resumption and of pool tasks).
+    executor : a :mod:`lidar_iris_eval.executor` executor built by the caller;
+        its ``workers`` replace ``workers``, and one that distributes work
+        (Dask) runs the chunks as its tasks.
     """
+    if executor is not None:
+        workers = executor.workers
     if workers < 1:
         raise LirisError(option("workers", workers), "must be at least 1")
     if chunk_size < 1:
@@ -213,7 +219,7 @@ def extract(
                desc=descriptor.name, unit="scan", file=sys.stderr, disable=not progress,
                leave=False)
     with bar:
-        for (a, b), arrays in _compute_chunks(seq, descriptor, todo, workers, bar):
+        for (a, b), arrays in _compute_chunks(seq, descriptor, todo, workers, bar, executor):
             if cache is not None:
                 cache.store_chunk(key, a, b, arrays)
             joined.add(a, b, arrays)
@@ -226,7 +232,7 @@ def extract(
 
 def _warn_if_degenerate(arrays, descriptor, seq) -> None:
     """Warn when most descriptors are empty or constant (millimetres, wrong frame)."""
-    from lidar_iris_eval.evaluation.sanity import warn_if_degenerate
+    from lidar_iris_eval.descriptors.sanity import warn_if_degenerate
 
     warn_if_degenerate(arrays.get("descriptors"), descriptor.name, seq.name,
                        sample=lambda i: seq[i])
@@ -305,17 +311,18 @@ class _Joiner:
         return {**features.to_arrays(), **times}
 
 
-def _compute_chunks(seq, descriptor, todo, workers, bar) -> Iterable:
+def _compute_chunks(seq, descriptor, todo, workers, bar, executor=None) -> Iterable:
     """Yield ``((a, b), arrays)`` for each range in ``todo`` (any order with a pool).
 
-    With a Dask engine active (``--scheduler``), the chunks are cluster tasks.
+    With an executor that distributes work (Dask, ``--scheduler``), the chunks
+    are its tasks.
     """
-    from lidar_iris_eval import engine as engines
-
-    if engines.current() is not None and todo:
-        from lidar_iris_eval.engine.tasks import compute_chunks
-
-        yield from compute_chunks(engines.current(), seq, descriptor, todo, bar)
+    if executor is not None and executor.distributes_blocks and todo:
+        for index, arrays in executor.imap(_compute_range, todo, shared=(seq, descriptor)):
+            a, b = todo[index]
+            arrays = _raise_errors(arrays)
+            bar.update(b - a)
+            yield (a, b), arrays
         return
     if workers == 1 or len(todo) <= 1:
         for a, b in todo:
@@ -417,3 +424,18 @@ def _init_worker(seq, descriptor, parent_pid: int | None = None) -> None:
 
 def _worker_range(a: int, b: int):
     return _compute_range(_WORKER["seq"], _WORKER["descriptor"], a, b)
+
+
+def external_database(desc, seq_name: str = "", fingerprint: str = ""):
+    """A :class:`DescriptorDB` for an
+    :class:`~lidar_iris_eval.descriptors.external.ExternalDescriptor`, as extraction returns.
+
+    Times are NaN: the descriptors were computed elsewhere, so their cost is
+    unknown and is reported as undefined.
+    """
+    stacked = desc.stacked()
+    n = len(stacked)
+    return DescriptorDB(descriptor=desc.name, preset=desc.preset, params=params_dict(desc.params),
+                        descriptors=stacked, extract_s=np.full(n, np.nan),
+                        read_s=np.full(n, np.nan), sequence=seq_name, fingerprint=fingerprint,
+                        cache_path=None, from_cache=False)

@@ -7,11 +7,6 @@ import pytest
 from test_protocols import ToyHist
 
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.evaluation.convention_protocol1 import (
-    band_curve,
-    best_matches_within,
-    protocol1_convention,
-)
 from lidar_iris_eval.evaluation.conventions import (
     PRESETS,
     database_limits,
@@ -20,7 +15,7 @@ from lidar_iris_eval.evaluation.conventions import (
     with_overrides,
 )
 from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth, gt_coordinates
-from lidar_iris_eval.evaluation.protocol1 import protocol1
+from lidar_iris_eval.evaluation.protocol1 import band_curve, protocol1
 from lidar_iris_eval.matching.blocks import best_matches
 
 
@@ -61,7 +56,7 @@ def test_per_query_search_equals_the_frame_window_search(budget):
     descs[7] = np.nan  # NaN distances never win
     ref = best_matches(desc, descs, 5, budget)
     conv = with_overrides(get_convention("liris"), exclude=5)
-    got = best_matches_within(desc, descs, database_limits(40, conv), budget)
+    got = best_matches(desc, descs, database_limits(40, conv), budget)  # per-query limits
     np.testing.assert_array_equal(got.query, ref.query)
     np.testing.assert_array_equal(got.match, ref.match)
     np.testing.assert_array_equal(got.distance, ref.distance)
@@ -76,7 +71,7 @@ def test_standard_convention_equals_protocol1():
     desc = ToyHist()
     conv = with_overrides(get_convention("liris"), exclude=5, radius=6.0)
     ref = protocol1(desc, descs, positions, exclude=5, radius=6.0)
-    got = protocol1_convention(desc, descs, positions, conv)
+    got = protocol1(desc, descs, positions, conv)
     assert got.metrics == ref.metrics
     np.testing.assert_array_equal(got.curve.recall, ref.curve.recall)
 

@@ -7,12 +7,12 @@ import pytest
 
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.descriptors.external import (
-    external_database,
     load_external,
     parse_external_spec,
 )
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.protocol2 import protocols_1_and_2
+from lidar_iris_eval.extract import external_database
 
 
 def unit_rows(rng, n, d=192):

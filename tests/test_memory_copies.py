@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from lidar_iris_eval.cache import arrays_checksum
-from lidar_iris_eval.evaluation import sanity
+from lidar_iris_eval.descriptors import sanity
 from lidar_iris_eval.extract import _Joiner, chunk_ranges
 
 

@@ -21,7 +21,8 @@ from lidar_iris_eval.evaluation.protocol1 import protocol1, reverse_revisits
 from lidar_iris_eval.evaluation.protocol2 import protocol2, protocols_1_and_2
 from lidar_iris_eval.extract import extract
 from lidar_iris_eval.io import open_sequence
-from lidar_iris_eval.matching.blocks import affinity_matrix, best_matches, retrieval_matches
+from lidar_iris_eval.matching.blocks import affinity_matrix, best_matches
+from lidar_iris_eval.matching.retrieval import two_stage_matches as retrieval_matches
 
 
 # --------------------------------------------------------------------------- toys

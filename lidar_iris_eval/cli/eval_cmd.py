@@ -21,10 +21,8 @@ from lidar_iris_eval.cli.workflow import (
     table_format,
     workflow_options,
 )
-from lidar_iris_eval.engine import check_scheduler, use_scheduler
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.evaluation.evaluate import (
-    Settings,
     check_request,
     evaluate,
     export_loops,
@@ -32,6 +30,7 @@ from lidar_iris_eval.evaluation.evaluate import (
     write_run,
 )
 from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir, json_ready
+from lidar_iris_eval.executor import check_scheduler, open_executor
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 from lidar_iris_eval.runs.table import render_table
 from lidar_iris_eval.sensors import resolve_sensor
@@ -81,13 +80,10 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     Descriptors are extracted first when the cache lacks them. Results go to a
     run folder (docs/results-format.md) that `liris plot` reads.
     """
-    conv = current_convention()  # --convention / --exclude 30s (issue 17)
-    exclude = exclude if conv.exclude_seconds is None else 1  # seconds: per-query limits
-    settings = Settings(radius=radius, exclude=exclude, distance=distance, pose_frame=pose_frame,
-                        recall_denominator=recall_denominator, candidates=candidates,
-                        pair_budget=block_pairs)
+    conv = current_convention()  # every ground-truth rule, validated once (Settings)
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
+    settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
     if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
         _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
                        cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
@@ -113,11 +109,12 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     check_run_dir(out, overwrite)
 
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
-    with use_scheduler(check_scheduler(scheduler), workers) as engine:
+    with open_executor(check_scheduler(scheduler), workers) as executor:
         run = evaluate(seq, descriptors, protocols, settings, cache=cache, workers=workers,
-                       progress=not quiet, convention=conv,
-                       dbs=extract_all(seq, descriptors, cache, workers, quiet))
-        engine_info = engine.describe() if engine is not None else {"scheduler": scheduler}
+                       progress=not quiet, executor=executor,
+                       dbs=extract_all(seq, descriptors, cache, workers, quiet, executor))
+        engine_info = (executor.describe() if executor.distributes_blocks
+                       else {"scheduler": scheduler})
     extra = {**config_extra(conv), "engine": engine_info}
     write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options, **extra)
     exported = export_loops(run, export_path) if export_path is not None else {}
@@ -129,7 +126,7 @@ def command(sequence, protocols, descriptor_text, preset, params, sensor, cache_
     click.echo(render_table(run.rows, table_format()))
     click.echo(  # after a Markdown/LaTeX/CSV table, to stderr: the table stays pasteable
         f"conventions: radius {settings.radius:g} m, exclude "
-        + (f"E={settings.exclude} ({settings.exclude_name})" if conv.exclude_seconds is None
+        + (f"E={settings.exclude} ({settings.exclude_name})" if settings.exclude_seconds is None
            else f"{conv.exclude_seconds:g} s by scan time")
         + f", {settings.distance} distance, {run.pose_frame}-frame poses, "
         f"protocol 1 recall denominator '{settings.recall_denominator}', convention "

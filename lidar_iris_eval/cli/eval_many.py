@@ -17,7 +17,6 @@ from pathlib import Path
 import click
 
 from lidar_iris_eval.cli.output import format_table
-from lidar_iris_eval.engine import check_scheduler, use_scheduler
 from lidar_iris_eval.engine.plan import (
     SUMMARY_COLUMNS,
     PlannedRun,
@@ -28,6 +27,7 @@ from lidar_iris_eval.engine.plan import (
     write_text_atomic,
 )
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.executor import check_scheduler, open_executor
 
 
 def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int, quiet: bool,
@@ -59,15 +59,17 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
     tmp.mkdir(parents=True)
     per_run = []
     try:
-        with use_scheduler(scheduler, workers) as engine:
-            engine_info = engine.describe() if engine is not None else {"scheduler": scheduler}
+        with open_executor(scheduler, workers) as executor:
+            engine_info = (executor.describe() if executor.distributes_blocks
+                           else {"scheduler": scheduler})
             for name, (seq, descriptors, protocols) in zip(names, prepared, strict=True):
                 if not quiet:
                     click.echo(f"{name}: {', '.join(d.name for d in descriptors)}, "
                                f"protocol {' and '.join(map(str, protocols))}", err=True)
                 result = evaluate(seq, descriptors, protocols, settings, cache=cache,
-                                  workers=workers, progress=not quiet, convention=conv,
-                                  dbs=extract_all(seq, descriptors, cache, workers, quiet))
+                                  workers=workers, progress=not quiet, executor=executor,
+                                  dbs=extract_all(seq, descriptors, cache, workers, quiet,
+                                                  executor))
                 write_run(result, tmp / name, sensor=sensor, reader_options=reader_options,
                           engine=engine_info)
                 per_run.append((name, result.rows))

@@ -122,26 +122,21 @@ def config_extra(convention=None) -> dict:
     extra = {"command": provenance()}
     if _meta().get("config"):
         extra["command"]["replayed_from"] = _meta()["config"]
-    if convention is not None:
-        fields = convention.to_dict()
-        extra["convention"] = {"preset": fields.pop("name"), **fields}
-        if convention.exclude_seconds is not None:  # the frame window is not used
-            extra["exclude"] = {"value": None, "seconds": convention.exclude_seconds,
-                                "preset": "seconds"}
-    return extra
+    return extra  # the conventions block is the run's Settings.to_dict() (Evaluation.config)
 
 
-def extract_all(seq, descriptors, cache, workers: int, quiet: bool):
+def extract_all(seq, descriptors, cache, workers: int, quiet: bool, executor=None):
     """One DescriptorDB per descriptor: extracted (or cached) ones and external files."""
-    from lidar_iris_eval.descriptors.external import ExternalDescriptor, external_database
-    from lidar_iris_eval.extract import extract
+    from lidar_iris_eval.descriptors.external import ExternalDescriptor
+    from lidar_iris_eval.extract import external_database, extract
 
     dbs = []
     for d in descriptors:
         if isinstance(d, ExternalDescriptor):
             dbs.append(external_database(d, seq.name, seq.fingerprint()))
         else:
-            dbs.append(extract(seq, d, cache=cache, workers=workers, progress=not quiet))
+            dbs.append(extract(seq, d, cache=cache, workers=workers, progress=not quiet,
+                               executor=executor))
     return dbs
 
 

@@ -12,7 +12,7 @@ import importlib.util
 
 from lidar_iris_eval.config import descriptor_preset_values, make_params
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.errors import LirisError, option, warn
 
 #: registry name -> "module:ClassName"; modules import lazily so that a broken
 #: or slow descriptor does not slow down the others.
@@ -71,7 +71,23 @@ def get_descriptor(
     preset_name, values = descriptor_preset_values(name, preset, sensor)
     values.update(overrides)
     params = make_params(cls.params_type, values, source=f"{name} preset {preset_name}")
+    warn_ignored(name, params, overrides)
     return cls(params, preset=preset_name)
+
+
+def warn_ignored(name: str, params, given) -> None:
+    """Warn for each parameter set in ``given`` that ``params`` say their search ignores.
+
+    A params class may define ``ignored() -> {name: reason}`` (e.g. LiDAR Iris'
+    ``shift_window`` outside the ``phase`` search), so an option that changes
+    nothing is never silent.
+    """
+    ignored = getattr(params, "ignored", None)
+    if ignored is None:
+        return
+    for key, reason in ignored().items():
+        if key in given:
+            warn(f"{name}.{key}", f"ignored: {reason}")
 
 
 __all__ = [

@@ -94,14 +94,16 @@ def yaw_to_pose(yaw_deg: np.ndarray) -> np.ndarray:
     """``(..., 4, 4)`` poses of yaw estimates (base-class convention), translation NaN.
 
     The candidate's points are the query's turned CCW by ``yaw_deg``, so the
-    map candidate -> query turns them back: ``Rz(-yaw_deg)``. NaN yaw gives an
-    all-NaN rotation.
+    map candidate -> query turns them back: ``Rz(-yaw_deg)``. NaN yaw (no
+    estimate: M2DP, ESF) gives an all-NaN rotation, so all nine rotation
+    entries of matches.csv are empty, as docs/results-format.md says.
     """
     yaw = np.deg2rad(np.asarray(yaw_deg, dtype=np.float64))
     c, s = np.cos(-yaw), np.sin(-yaw)
     T = np.zeros((*yaw.shape, 4, 4))
     T[..., 0, 0], T[..., 0, 1], T[..., 1, 0], T[..., 1, 1] = c, -s, s, c
-    T[..., 2, 2] = np.where(np.isnan(yaw), np.nan, 1.0)
+    T[..., 2, 2] = 1.0
+    T[np.isnan(yaw), :3, :3] = np.nan
     T[..., :3, 3] = np.nan
     T[..., 3, 3] = 1.0
     return T

@@ -39,76 +39,36 @@ the poses.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.evaluation.ground_truth import database_limits, revisit_queries_within
+from lidar_iris_eval.evaluation.settings import RULES, Convention, Settings
 
-
-@dataclass(frozen=True)
-class Convention:
-    """A complete ground-truth convention.
-
-    Attributes
-    ----------
-    name : preset name.
-    radius : metres; a database frame is a true match closer than this.
-    exclude : frames (E), or None when the window is in seconds.
-    exclude_seconds : seconds, or None when the window is in frames.
-    window_rule : ``"liris"`` (database ``t_j <= t_i - T``) or ``"logg3d"``
-        (also the first scan after ``t_i - T``, and queries only once ``T``
-        has passed since the first scan).
-    distance, pose_frame : as ``--distance`` and ``--pose-frame``.
-    recall_denominator : ``revisits`` or ``accepted``.
-    not_revisit_radius : metres, or None. Accepted matches between
-        ``radius`` and this are neither true nor false positives.
-    inclusive_radius : a match exactly at ``radius`` is true (LoGG3D's ``<=``).
-    last_frame_query : False when the last frame is never a query.
-    source : where the values come from.
-    """
-
-    name: str
-    radius: float
-    exclude: int | None
-    exclude_seconds: float | None
-    window_rule: str
-    distance: str
-    pose_frame: str
-    recall_denominator: str
-    not_revisit_radius: float | None
-    inclusive_radius: bool
-    last_frame_query: bool
-    source: str
-
-    @property
-    def standard(self) -> bool:
-        """True when the ordinary protocol 1 (frame window, strict radius) applies."""
-        return (self.exclude_seconds is None and self.not_revisit_radius is None
-                and not self.inclusive_radius and self.last_frame_query)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-PRESETS: dict[str, Convention] = {
-    "liris": Convention(
-        "liris", 4.0, 30, None, "liris", "3d", "camera", "revisits", None, False, True,
-        "LiDAR Iris paper (IROS 2020) text: 4 m, E = 30; recall over revisit queries as in "
-        "the authors' draw.py"),
-    "scancontext-eval": Convention(
-        "scancontext-eval", 5.0, 49, None, "liris", "planar", "camera", "accepted", None, False,
-        False,
-        "gisbi-kim/scancontext_tro fast_evaluator/main.m (revisit_criteria = 5, database "
-        "exp_poses(1:end-(num_candidates-1)), num_candidates = 50, loop to num_queries - 1), "
-        "src/isRevisitGlobalLoc.m (strict <), src/makeExperience.m (pose columns 4 and 12)"),
-    "logg3d": Convention(
-        "logg3d", 3.0, None, 30.0, "logg3d", "3d", "camera", "accepted", 20.0, True, True,
-        "csiro-robotics/LoGG3D-Net evaluation/eval_sequence.py and config/eval_config.py "
-        "(revisit_criteria = 3, not_revisit_criteria = 20, skip_time = 30)"),
-    "iris-cpp": Convention(
-        "iris-cpp", 4.0, 300, None, "liris", "planar", "camera", "revisits", None, False, True,
-        "LiDAR Iris authors' C++ demo: planar distance, 4 m, 300 frames excluded"),
+PRESETS: dict[str, Settings] = {
+    "liris": Settings(
+        name="liris", radius=4.0, exclude=30, distance="3d", pose_frame="camera",
+        recall_denominator="revisits",
+        source="LiDAR Iris paper (IROS 2020) text: 4 m, E = 30; recall over revisit queries "
+               "as in the authors' draw.py"),
+    "scancontext-eval": Settings(
+        name="scancontext-eval", radius=5.0, exclude=49, distance="planar",
+        pose_frame="camera", recall_denominator="accepted", last_frame_query=False,
+        source="gisbi-kim/scancontext_tro fast_evaluator/main.m (revisit_criteria = 5, "
+               "database exp_poses(1:end-(num_candidates-1)), num_candidates = 50, loop to "
+               "num_queries - 1), src/isRevisitGlobalLoc.m (strict <), src/makeExperience.m "
+               "(pose columns 4 and 12)"),
+    "logg3d": Settings(
+        name="logg3d", radius=3.0, exclude_seconds=30.0, window_rule="logg3d", distance="3d",
+        pose_frame="camera", recall_denominator="accepted", not_revisit_radius=20.0,
+        inclusive_radius=True,
+        source="csiro-robotics/LoGG3D-Net evaluation/eval_sequence.py and "
+               "config/eval_config.py (revisit_criteria = 3, not_revisit_criteria = 20, "
+               "skip_time = 30)"),
+    "iris-cpp": Settings(
+        name="iris-cpp", radius=4.0, exclude=300, distance="planar", pose_frame="camera",
+        recall_denominator="revisits",
+        source="LiDAR Iris authors' C++ demo: planar distance, 4 m, 300 frames excluded"),
 }
 
 #: why a requested peer convention is not offered
@@ -119,7 +79,7 @@ NOT_OFFERED = {
 }
 
 
-def get_convention(name: str) -> Convention:
+def get_convention(name: str) -> Settings:
     """The preset called ``name``; an unknown or unavailable name is a LirisError."""
     if name in PRESETS:
         return PRESETS[name]
@@ -129,93 +89,33 @@ def get_convention(name: str) -> Convention:
                      f"unknown convention; choose from {', '.join(PRESETS)}")
 
 
-def with_overrides(conv: Convention, **values) -> Convention:
+def with_overrides(conv: Settings, **values) -> Settings:
     """A copy of ``conv`` with the given fields replaced (None values are ignored).
 
     Setting ``exclude`` clears ``exclude_seconds`` and vice versa, since a
-    window is either in frames or in seconds.
+    window is either in frames or in seconds. A changed rule renames the
+    copy ``<name>+custom`` unless ``name`` is given.
     """
-    fields = conv.to_dict()
     given = {k: v for k, v in values.items() if v is not None}
     if "exclude" in given:
-        fields["exclude_seconds"] = None
-    if "exclude_seconds" in given:
-        fields["exclude"] = None
-    fields.update(given)
-    changed = any(fields[k] != getattr(conv, k) for k in given)
+        given.setdefault("exclude_seconds", None)
+    if given.get("exclude_seconds") is not None:
+        given["exclude"] = None
+    changed = any(getattr(conv, k) != v for k, v in given.items()
+                  if k not in ("name", "source"))
     if changed and "name" not in given:
-        fields["name"] = f"{conv.name}+custom"
-    return Convention(**fields)
+        given["name"] = f"{conv.name}+custom"
+    return conv.replace(**given)
 
 
-def same_rules(a: Convention, b: Convention) -> bool:
+def same_rules(a: Settings, b: Settings) -> bool:
     """True when two conventions differ at most in name and source."""
-    skip = {"name", "source"}
-    return all(getattr(a, k) == getattr(b, k) for k in a.to_dict() if k not in skip)
+    return all(getattr(a, k) == getattr(b, k) for k in RULES)
 
 
-def database_limits(n_frames: int, conv: Convention, times: np.ndarray | None = None,
-                    source: str = "times.txt") -> np.ndarray:
-    """``(N,)`` last database index each query may match, ``-1`` when it is not a query.
-
-    Frame windows give ``i - E``. Time windows need ``times`` (seconds, one per
-    scan, non-decreasing) and follow ``conv.window_rule`` (see :class:`Convention`).
-    """
-    index = np.arange(n_frames)
-    if conv.exclude_seconds is None:
-        if conv.exclude is None or conv.exclude < 1:
-            raise LirisError(f"convention {conv.name}", "exclusion window must be at least 1")
-        limits = index - int(conv.exclude)
-    else:
-        if times is None:
-            raise LirisError(
-                f"--exclude {conv.exclude_seconds:g}s",
-                "a window in seconds needs scan times (times.txt beside the scans, --times, "
-                "or bag timestamps)")
-        times = np.asarray(times, dtype=np.float64)
-        if len(times) != n_frames:
-            raise LirisError(source, f"{len(times)} times for {n_frames} scans")
-        if not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
-            raise LirisError(source, "scan times must be finite and non-decreasing")
-        seconds = float(conv.exclude_seconds)
-        if seconds <= 0:
-            raise LirisError(f"--exclude {seconds:g}s", "exclusion window must be positive")
-        # last j with t_j <= t_i - T
-        limits = np.searchsorted(times, times - seconds, side="right") - 1
-        if conv.window_rule == "logg3d":
-            limits = np.where(times - times[0] >= seconds, limits + 1, -1)
-            limits = np.minimum(limits, index - 1)
-    limits = np.where(limits >= 0, limits, -1)
-    if not conv.last_frame_query and n_frames:
-        limits[-1] = -1
-    return limits.astype(np.int64)
-
-
-def revisit_queries_within(coords: np.ndarray, limits: np.ndarray, radius: float,
-                           inclusive: bool = False) -> np.ndarray:
-    """``(N,)`` bool: query ``i`` has a database frame ``j <= limits[i]`` within ``radius``.
-
-    ``coords`` are the ground-truth coordinates (see ``ground_truth.gt_coordinates``).
-    """
-    from scipy.spatial import cKDTree
-
-    coords = np.asarray(coords, dtype=np.float64)
-    n = len(coords)
-    revisit = np.zeros(n, dtype=bool)
-    if n < 2:
-        return revisit
-    # query_pairs is inclusive (<= r); trim to strict unless asked
-    pairs = cKDTree(coords).query_pairs(radius, output_type="ndarray").astype(np.int64)
-    if len(pairs) == 0:
-        return revisit
-    pairs.sort(axis=1)
-    if not inclusive:
-        dist = np.linalg.norm(coords[pairs[:, 0]] - coords[pairs[:, 1]], axis=1)
-        pairs = pairs[dist < radius]
-    early, late = pairs[:, 0], pairs[:, 1]
-    ok = early <= limits[late]
-    revisit[late[ok]] = True
-    return revisit
+__all__ = ["NOT_OFFERED", "PRESETS", "Convention", "Settings", "convention_counts",
+           "convention_header", "database_limits", "get_convention", "revisit_queries_within",
+           "same_rules", "with_overrides"]
 
 
 def convention_counts(positions: np.ndarray, conv: Convention,

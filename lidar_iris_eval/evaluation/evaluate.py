@@ -40,6 +40,7 @@ from lidar_iris_eval.errors import LirisError, option
 from lidar_iris_eval.evaluation import metrics as m
 from lidar_iris_eval.evaluation import poses as pose_tools
 from lidar_iris_eval.evaluation.conventions import convention_header
+from lidar_iris_eval.evaluation.ground_truth import database_limits
 from lidar_iris_eval.evaluation.protocol1 import REVERSE_DEGREES, Protocol1Result, protocol1
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result, protocol2, protocols_1_and_2
 from lidar_iris_eval.evaluation.report import (
@@ -104,12 +105,15 @@ class Evaluation:
                              "params": params_dict(r.descriptor.params)} for r in self.results],
             "protocols": list(self.protocols),
             "radius": float(s.radius),
-            "exclude": {"value": int(s.exclude), "preset": s.exclude_name},
+            "exclude": ({"value": int(s.exclude), "preset": s.exclude_name}
+                        if s.exclude_seconds is None else
+                        {"value": None, "seconds": s.exclude_seconds, "preset": "seconds"}),
             "recall_denominator": s.recall_denominator,
             "distance": s.distance,
             "pose_frame": self.pose_frame,
             "candidates": s.candidates,
             "block_pairs": int(s.pair_budget),
+            "convention": s.to_dict(),  # Settings.from_dict rebuilds the run's ground truth
         }
         for key, value in extra.items():
             if key == "reader_options":
@@ -203,7 +207,8 @@ def evaluate(
     workers: int = 1,
     progress: bool = False,
     dbs: Sequence[DescriptorDB] | None = None,
-    convention: Any = None,
+    convention: Settings | None = None,
+    executor: Any = None,
 ) -> Evaluation:
     """Extract and evaluate ``descriptors`` on ``sequence`` under ``settings``.
 
@@ -213,16 +218,23 @@ def evaluate(
         :func:`~lidar_iris_eval.io.open_sequence`.
     descriptors : descriptor objects or names (``"name"`` or ``"name:preset"``).
     protocols : any of 1 and 2.
-    settings : the conventions (default :class:`Settings()`).
+    settings : every convention (default :class:`Settings()`); a peer preset
+        (:func:`~lidar_iris_eval.evaluation.conventions.get_convention`) is one.
     cache : a :class:`~lidar_iris_eval.cache.DescriptorCache`, a folder, or None.
-    workers : extraction processes.
+    workers : extraction processes (when no ``executor`` is given).
     progress : tqdm bars on stderr.
     dbs : already extracted descriptors (one per descriptor), to skip extraction.
-    convention : a :class:`~lidar_iris_eval.evaluation.conventions.Convention` whose
-        protocol 1 rules (window in seconds, skipped queries, LoGG3D's band) replace
-        the frame window; its radius/distance must equal ``settings``'.
+    convention : a preset whose ground-truth rules replace those of
+        ``settings`` (``candidates`` and ``pair_budget`` are kept); what is
+        scored is what the run records.
+    executor : from :func:`~lidar_iris_eval.executor.open_executor`; runs the
+        extraction chunks and block passes (default: serial / a local pool of
+        ``workers``).
     """
     settings = Settings() if settings is None else settings
+    if convention is not None:
+        settings = convention.replace(candidates=settings.candidates,
+                                      pair_budget=settings.pair_budget)
     descriptors = _descriptor_list(descriptors)
     protocols = check_request(descriptors, protocols, settings)
     if isinstance(sequence, (str, os.PathLike)):
@@ -232,58 +244,52 @@ def evaluate(
     for d in descriptors:
         d.check_inputs(sequence)
     pose_frame = sequence.resolve_pose_frame(settings.pose_frame)
+    if pose_frame != settings.pose_frame:  # the frame the numbers are computed in
+        settings = settings.replace(pose_frame=pose_frame)
     positions = sequence.positions(pose_frame)
     forward = sequence.poses[:, :3, 0]  # LiDAR x axis: the driving direction
     started = time.perf_counter()
     if dbs is None:
-        dbs = [extract(sequence, d, cache=cache, workers=workers, progress=progress)
-               for d in descriptors]
+        dbs = [extract(sequence, d, cache=cache, workers=workers, progress=progress,
+                       executor=executor) for d in descriptors]
+    times = getattr(sequence, "times", None) if settings.exclude_seconds is not None else None
     results = []
     for desc, db in zip(descriptors, dbs, strict=True):
         results.append(_evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
-                                     settings, pose_frame, progress, convention,
-                                     getattr(sequence, "times", None)))
+                                     settings, progress, times, executor))
     return Evaluation(sequence, settings, protocols, pose_frame, results,
                       time.perf_counter() - started)
 
 
-def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings, frame,
-                  progress, convention=None, times=None) -> DescriptorResult:
-    """Run the requested protocols for one descriptor and build its metric rows."""
+def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings, progress,
+                  times=None, executor=None) -> DescriptorResult:
+    """Run the requested protocols for one descriptor and build its metric rows.
+
+    Protocols 1 and 2 are reducers of one block pass when both are asked
+    for (a two-stage method runs its retrieval passes); the kind of method
+    is the matcher's business, not this function's.
+    """
     s = settings
-    common = dict(radius=s.radius, distance=s.distance, frame=frame, pair_budget=s.pair_budget)
     p1 = p2 = None
     n = len(db)
-    rows_to_match = n if 2 in protocols else max(0, n - s.exclude)
+    limits = database_limits(n, s, times)
+    rows_to_match = n if 2 in protocols else int(np.count_nonzero(limits >= 0))
+    common = dict(forward=forward, lidar_poses=lidar_poses, executor=executor)
     with tqdm(total=rows_to_match, desc=f"{desc.name} matching", unit="query",
               file=sys.stderr, disable=not progress, leave=False) as bar:
-        peer = convention is not None and not convention.standard and 1 in protocols
-        both = protocols == (1, 2) and (s.candidates is None or desc.two_stage) and not peer
-        if both:
-            p1, p2 = protocols_1_and_2(
-                desc, db.descriptors, positions, exclude=s.exclude,
-                recall_denominator=s.recall_denominator, forward=forward,
-                progress=bar.update, lidar_poses=lidar_poses, candidates=s.candidates,
-                **common)
+        if protocols == (1, 2) and (s.candidates is None or desc.two_stage):
+            p1, p2 = protocols_1_and_2(desc, db.descriptors, positions, s, times=times,
+                                       progress=bar.update, **common)
         else:
-            if peer:  # a peer's protocol 1 rules (evaluation/conventions.py)
-                from lidar_iris_eval.evaluation.convention_protocol1 import protocol1_convention
-                from lidar_iris_eval.evaluation.conventions import with_overrides
-
-                p1 = protocol1_convention(desc, db.descriptors, positions,
-                                          with_overrides(convention, pose_frame=frame),
-                                          times=times, forward=forward,
-                                          pair_budget=s.pair_budget, progress=bar.update)
-            elif 1 in protocols:
-                p1 = protocol1(desc, db.descriptors, positions, exclude=s.exclude,
-                               recall_denominator=s.recall_denominator,
-                               candidates=s.candidates, forward=forward,
-                               progress=bar.update, lidar_poses=lidar_poses, **common)
+            if 1 in protocols:
+                p1 = protocol1(desc, db.descriptors, positions, s, times=times,
+                               progress=bar.update, **common)
             if 2 in protocols:
                 # the bar counted protocol 1 already; don't overrun it
                 p2 = protocol2(desc, db.descriptors, positions,
+                               s.replace(candidates=s.candidates if desc.two_stage else None),
                                progress=None if p1 is not None else bar.update,
-                               candidates=s.candidates if desc.two_stage else None, **common)
+                               executor=executor)
     return DescriptorResult(desc, db, p1, p2, _rows(desc, db, p1, p2, s))
 
 
@@ -355,6 +361,10 @@ def write_run(evaluation: Evaluation, out: str | os.PathLike, overwrite: bool = 
         write_metrics(run, evaluation.header(config), evaluation.rows)
         run.write_npy("poses.npy", np.asarray(poses, dtype=np.float64))
         run.write_npy("positions.npy", seq.positions(evaluation.pose_frame).astype(np.float64))
+        times = getattr(seq, "times", None)
+        if evaluation.settings.exclude_seconds is not None and times is not None:
+            # a window in seconds: the reader rebuilds the run's queries from these
+            run.write_npy("times.npy", np.asarray(times, dtype=np.float64))
     return out
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.matching.blocks import frame_limits
 
 PLANAR_AXES = {"camera": (0, 2), "lidar": (0, 1)}
 DISTANCES = ("3d", "planar")
@@ -80,7 +81,15 @@ class GroundTruth:
     distance: str
     frame: str
     pairs: np.ndarray  # (K, 2) unordered positive pairs, i < j
-    revisit: np.ndarray  # (N,) bool: query has a positive j <= i - exclude
+    revisit: np.ndarray  # (N,) bool: query has a positive j <= i - exclude (or <= limits[i])
+    #: (N,) last database frame of each query, -1 when it is not a query; None = i - exclude
+    limits: np.ndarray | None = None
+
+    def query_limits(self) -> np.ndarray:
+        """``(N,)`` last database frame each query may match (``-1``: not a query)."""
+        if self.limits is not None:
+            return self.limits
+        return frame_limits(self.n_frames, self.exclude)
 
     @property
     def n_positive_pairs(self) -> int:
@@ -149,6 +158,91 @@ def compute_ground_truth(
         pairs=pairs,
         revisit=revisit_queries(pairs, len(coords), exclude),
     )
+
+
+def database_limits(n_frames: int, conv, times: np.ndarray | None = None,
+                    source: str = "times.txt") -> np.ndarray:
+    """``(N,)`` last database index each query may match, ``-1`` when it is not a query.
+
+    ``conv`` is a :class:`~lidar_iris_eval.evaluation.settings.Settings`. Frame
+    windows give ``i - E``. Time windows need ``times`` (seconds, one per scan,
+    non-decreasing) and follow ``conv.window_rule``.
+    """
+    index = np.arange(n_frames)
+    if conv.exclude_seconds is None:
+        if conv.exclude is None or conv.exclude < 1:
+            raise LirisError(f"convention {conv.name}", "exclusion window must be at least 1")
+        limits = index - int(conv.exclude)
+    else:
+        if times is None:
+            raise LirisError(
+                f"--exclude {conv.exclude_seconds:g}s",
+                "a window in seconds needs scan times (times.txt beside the scans, --times, "
+                "or bag timestamps)")
+        times = np.asarray(times, dtype=np.float64)
+        if len(times) != n_frames:
+            raise LirisError(source, f"{len(times)} times for {n_frames} scans")
+        if not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
+            raise LirisError(source, "scan times must be finite and non-decreasing")
+        seconds = float(conv.exclude_seconds)
+        # last j with t_j <= t_i - T
+        limits = np.searchsorted(times, times - seconds, side="right") - 1
+        if conv.window_rule == "logg3d":
+            limits = np.where(times - times[0] >= seconds, limits + 1, -1)
+            limits = np.minimum(limits, index - 1)
+    limits = np.where(limits >= 0, limits, -1)
+    if not conv.last_frame_query and n_frames:
+        limits[-1] = -1
+    return limits.astype(np.int64)
+
+
+def revisit_queries_within(coords: np.ndarray, limits: np.ndarray, radius: float,
+                           inclusive: bool = False) -> np.ndarray:
+    """``(N,)`` bool: query ``i`` has a database frame ``j <= limits[i]`` within ``radius``.
+
+    ``coords`` are the ground-truth coordinates (:func:`gt_coordinates`).
+    """
+    coords = np.asarray(coords, dtype=np.float64)
+    n = len(coords)
+    revisit = np.zeros(n, dtype=bool)
+    if n < 2:
+        return revisit
+    # query_pairs is inclusive (<= r); trim to strict unless asked
+    pairs = cKDTree(coords).query_pairs(radius, output_type="ndarray").astype(np.int64)
+    if len(pairs) == 0:
+        return revisit
+    pairs.sort(axis=1)
+    if not inclusive:
+        dist = np.linalg.norm(coords[pairs[:, 0]] - coords[pairs[:, 1]], axis=1)
+        pairs = pairs[dist < radius]
+    early, late = pairs[:, 0], pairs[:, 1]
+    ok = early <= limits[late]
+    revisit[late[ok]] = True
+    return revisit
+
+
+def ground_truth_for(positions: np.ndarray, settings, times: np.ndarray | None = None,
+                     limits: np.ndarray | None = None) -> GroundTruth:
+    """The ground truth of ``settings`` (a :class:`~.settings.Settings`) on ``positions``.
+
+    The standard rule (frame window, strict radius, every frame a query) is
+    :func:`compute_ground_truth`; otherwise revisit queries follow the
+    per-query database ``limits`` (:func:`database_limits`) and ``exclude``
+    holds the smallest frame gap any query is allowed (for the record).
+    """
+    if settings.standard:
+        return compute_ground_truth(positions, settings.radius, settings.exclude,
+                                    settings.distance, settings.pose_frame)
+    if limits is None:
+        limits = database_limits(len(positions), settings, times)
+    coords = gt_coordinates(positions, settings.pose_frame, settings.distance)
+    revisit = revisit_queries_within(coords, limits, settings.radius, settings.inclusive_radius)
+    gaps = (np.arange(len(limits)) - limits)[limits >= 0]
+    return GroundTruth(
+        n_frames=len(coords), radius=float(settings.radius),
+        exclude=int(gaps.min()) if len(gaps) else 0, distance=settings.distance,
+        frame=settings.pose_frame, pairs=positive_pairs(coords, settings.radius),
+        revisit=revisit, limits=np.asarray(limits, dtype=np.int64))
 
 
 def pair_distances(positions: np.ndarray, i: np.ndarray, j: np.ndarray, frame: str,

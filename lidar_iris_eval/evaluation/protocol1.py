@@ -1,6 +1,15 @@
 """Protocol 1: loop-closure detection, one best match per query (PROTOCOLS.md).
 
-For each query ``i >= E`` the best database frame ``j* <= i - E`` is found;
+One protocol 1 over per-query database limits: query ``i`` may match
+``j <= limits[i]`` (``-1``: not a query). The standard rule ``limits[i] =
+i - E`` is one case; peers' conventions (a window in seconds, the last frame
+never a query, LoGG3D-Net's "not a revisit" band and inclusive radius) are
+others, all described by one :class:`~lidar_iris_eval.evaluation.settings.Settings`.
+Every method goes through the same matcher (:func:`match_protocol1`): the
+exhaustive block pass for global descriptors, retrieval + verification for
+two-stage methods (and for ``candidates=K``).
+
+In the standard case: for each query ``i >= E`` the best database frame ``j* <= i - E`` is found;
 a loop is predicted when ``d(i, j*) <= tau`` and it is true when ``j*`` lies
 within the radius of ``i``. Queries ``i < E`` have no database and are skipped
 (reported as ``n_skipped``). Revisit queries are those with at least one
@@ -25,7 +34,8 @@ from lidar_iris_eval.descriptors.base import Descriptor, yaw_to_pose
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.ground_truth import (
     GroundTruth,
-    compute_ground_truth,
+    database_limits,
+    ground_truth_for,
     gt_coordinates,
     pair_distances,
 )
@@ -36,10 +46,10 @@ from lidar_iris_eval.evaluation.poses import (
     summarize_pose_errors,
     t_columns,
 )
-from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET, BestMatches, best_matches
+from lidar_iris_eval.evaluation.settings import RECALL_DENOMINATORS, Settings
+from lidar_iris_eval.matching.blocks import BestMatches, best_matches
 from lidar_iris_eval.matching.retrieval import two_stage_matches
 
-RECALL_DENOMINATORS = ("revisits", "accepted")
 #: heading difference above which a revisit counts as reverse-direction
 REVERSE_DEGREES = 90.0
 
@@ -106,7 +116,7 @@ def score_protocol1(
     matches: BestMatches,
     positions: np.ndarray,
     gt: GroundTruth,
-    recall_denominator: str = "revisits",
+    recall_denominator: str | Settings = "revisits",
     forward: np.ndarray | None = None,
     lidar_poses: np.ndarray | None = None,
 ) -> Protocol1Result:
@@ -114,28 +124,39 @@ def score_protocol1(
 
     Parameters
     ----------
-    matches : best match of each query ``i >= gt.exclude``.
+    matches : best match of each query (``gt.query_limits() >= 0``).
     positions : ``(N, 3)`` translations in ``gt.frame``.
     gt : ground truth under the run's conventions (radius, E, distance, frame).
-    recall_denominator : ``revisits`` or ``accepted``.
+    recall_denominator : ``revisits`` or ``accepted``, or the run's
+        :class:`Settings` (which also names the inclusive radius and the
+        "not a revisit" band: accepted matches in it are neither true nor false).
     forward : optional ``(N, 3)`` unit forward (driving) directions, to split
         revisits into same- and reverse-direction ones.
     lidar_poses : optional ``(N, 4, 4)`` LiDAR-frame poses, for the relative
         pose errors of the matches (``evaluation/poses.py``).
     """
-    check_recall_denominator(recall_denominator)
+    settings = recall_denominator if isinstance(recall_denominator, Settings) else None
+    denominator = settings.recall_denominator if settings is not None else recall_denominator
+    check_recall_denominator(denominator)
+    inclusive = settings is not None and settings.inclusive_radius
+    band_radius = settings.not_revisit_radius if settings is not None else None
     query, match = matches.query, matches.match
     has = match >= 0
     dist_m = np.full(len(query), np.nan)
     if has.any():
         dist_m[has] = pair_distances(positions, query[has], match[has], gt.frame, gt.distance)
-    is_true = has & (dist_m < gt.radius)
+    is_true = has & ((dist_m <= gt.radius) if inclusive else (dist_m < gt.radius))
+    band = np.zeros(len(query), dtype=bool)
+    if band_radius is not None:
+        band = has & ~is_true & (dist_m <= band_radius)
     is_revisit = gt.revisit[query]
-    discount = (is_revisit & ~is_true) if recall_denominator == "accepted" else None
-    curve = pr_curve(matches.distance, is_true, gt.n_revisits, discount=discount)
-    metrics = summarize(curve, gt.n_revisits, len(query),
-                        f"protocol 1 (E={gt.exclude}, {gt.n_frames} frames, "
-                        f"radius {gt.radius:g} m)",
+    discount = (is_revisit & ~is_true) if denominator == "accepted" else None
+    if band.any():
+        curve = band_curve(matches.distance, is_true, band, is_revisit, gt.n_revisits,
+                           denominator)
+    else:
+        curve = pr_curve(matches.distance, is_true, gt.n_revisits, discount=discount)
+    metrics = summarize(curve, gt.n_revisits, len(query), _context(gt, settings),
                         "no queries: the exclusion window is at least the sequence length")
     metrics.update(
         n_queries=int(len(query)),
@@ -144,6 +165,8 @@ def score_protocol1(
         n_positives=gt.n_revisits,
         n_true_top1=int(np.count_nonzero(is_true)),
     )
+    if band_radius is not None:
+        metrics["n_band"] = int(np.count_nonzero(band))
     is_reverse = None
     if forward is not None:
         reverse_all = reverse_revisits(positions, gt, forward)
@@ -162,7 +185,42 @@ def score_protocol1(
                 metrics[f"rre_deg_median_{label}"] = part["rre_deg_median"]
                 metrics[f"rre_deg_p90_{label}"] = part["rre_deg_p90"]
     return Protocol1Result(matches, dist_m, is_revisit, is_true, is_reverse, curve, metrics,
-                           recall_denominator, gt, pose, rre, rte)
+                           denominator, gt, pose, rre, rte)
+
+
+def _context(gt: GroundTruth, settings: Settings | None) -> str:
+    """Names the evaluation in the warning given when its numbers are undefined."""
+    if settings is not None and settings.exclude_seconds is not None:
+        window = f"{settings.exclude_seconds:g} s window"
+    else:
+        window = f"E={gt.exclude}"
+    return f"protocol 1 ({window}, {gt.n_frames} frames, radius {gt.radius:g} m)"
+
+
+def band_curve(distances: np.ndarray, is_true: np.ndarray, band: np.ndarray,
+               is_revisit: np.ndarray, n_revisits: int, denominator: str) -> PRCurve:
+    """The exact PR curve when ``band`` predictions count as neither TP nor FP.
+
+    With the ``accepted`` denominator an accepted wrong match on a revisit
+    query (band or not) removes that query from the denominator; with
+    ``revisits`` it stays a miss. Points where only band predictions are
+    accepted have no defined precision and are left out.
+    """
+    distances = np.asarray(distances, dtype=np.float64)
+    counted = ~band
+    discount = (is_revisit & ~is_true) if denominator == "accepted" else None
+    base = pr_curve(distances[counted], is_true[counted], n_revisits,
+                    discount=None if discount is None else discount[counted])
+    if discount is None or not band.any():
+        return base
+    # band revisit queries leave the denominator too once accepted
+    extra = np.sort(distances[band & discount & np.isfinite(distances)])
+    drop = np.searchsorted(extra, base.threshold, side="right")
+    denom = base.tp + base.fn - drop
+    with np.errstate(invalid="ignore", divide="ignore"):
+        recall = np.where(denom > 0, base.tp / np.maximum(denom, 1), np.nan)
+    return PRCurve(base.threshold, base.precision, recall.astype(np.float64), base.tp, base.fp,
+                   denom - base.tp)
 
 
 def estimated_poses(matches: BestMatches) -> np.ndarray:
@@ -188,7 +246,7 @@ def reverse_revisits(positions: np.ndarray, gt: GroundTruth, forward: np.ndarray
     if len(pairs) == 0:
         return out
     early, late = pairs[:, 0], pairs[:, 1]
-    ok = late - early >= gt.exclude
+    ok = early <= gt.query_limits()[late]
     early, late = early[ok], late[ok]
     if len(late) == 0:
         return out
@@ -226,37 +284,66 @@ def stacked_descriptors(descriptors, positions: np.ndarray) -> np.ndarray:
     return descriptors
 
 
+def settings_from(settings: Settings | None = None, *, exclude=None, radius=None,
+                  distance=None, frame=None, recall_denominator=None, candidates=None,
+                  pair_budget=None) -> Settings:
+    """``settings`` (default :class:`Settings()`) with the keyword values given (not None)."""
+    values = {"exclude": exclude, "radius": radius, "distance": distance, "pose_frame": frame,
+              "recall_denominator": recall_denominator, "candidates": candidates,
+              "pair_budget": pair_budget}
+    values = {k: v for k, v in values.items() if v is not None}
+    if "exclude" in values:
+        values.setdefault("exclude_seconds", None)
+    base = Settings() if settings is None else settings
+    return base.replace(**values) if values else base
+
+
+def match_protocol1(descriptor: Descriptor, descriptors, limits: np.ndarray,
+                    settings: Settings, progress: Callable[[int], object] | None = None,
+                    executor=None) -> BestMatches:
+    """The one matcher: each query's best match over ``j <= limits[i]``.
+
+    Two-stage methods (and ``settings.candidates = K``) retrieve and verify
+    (:func:`~lidar_iris_eval.matching.retrieval.two_stage_matches`); global
+    descriptors search exhaustively in blocks
+    (:func:`~lidar_iris_eval.matching.blocks.best_matches`).
+    """
+    if settings.candidates is not None or descriptor.two_stage:
+        k = settings.candidates if settings.candidates is not None \
+            else descriptor.default_candidates()
+        return two_stage_matches(descriptor, descriptors, limits, k, progress)
+    return best_matches(descriptor, descriptors, limits, settings.pair_budget, progress,
+                        executor)
+
+
 def protocol1(
     descriptor: Descriptor,
     descriptors: np.ndarray,
     positions: np.ndarray,
+    settings: Settings | None = None,
     *,
-    exclude: int = 30,
-    radius: float = 4.0,
-    distance: str = "3d",
-    frame: str = "camera",
-    recall_denominator: str = "revisits",
-    candidates: int | None = None,
+    times: np.ndarray | None = None,
     forward: np.ndarray | None = None,
-    pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
     lidar_poses: np.ndarray | None = None,
+    executor=None,
+    **values,
 ) -> Protocol1Result:
     """Run protocol 1 end to end on stacked descriptors and positions.
 
     ``descriptors`` is the stacked array (or ragged features) or a
-    :class:`~lidar_iris_eval.extract.DescriptorDB`. ``candidates=K`` uses
-    the descriptor's retrieval stage and verification
-    (:mod:`~lidar_iris_eval.matching.retrieval`) instead of the exhaustive
-    search; two-stage methods always do, with ``K`` defaulting to
-    ``descriptor.default_candidates()``.
+    :class:`~lidar_iris_eval.extract.DescriptorDB`; ``positions`` are in
+    ``settings.pose_frame``. ``settings`` holds every convention; the keyword
+    values ``exclude``, ``radius``, ``distance``, ``frame``,
+    ``recall_denominator``, ``candidates`` and ``pair_budget`` override it
+    (:func:`settings_from`). ``times`` (seconds per scan) are needed by a
+    window in seconds. ``candidates=K`` uses the descriptor's retrieval stage
+    and verification instead of the exhaustive search; two-stage methods
+    always do, with ``K`` defaulting to ``descriptor.default_candidates()``.
     """
-    check_recall_denominator(recall_denominator)
+    settings = settings_from(settings, **values)
     descriptors = stacked_descriptors(descriptors, positions)
-    gt = compute_ground_truth(positions, radius, exclude, distance, frame)
-    if candidates is not None or descriptor.two_stage:
-        k = candidates if candidates is not None else descriptor.default_candidates()
-        matches = two_stage_matches(descriptor, descriptors, exclude, k, progress)
-    else:
-        matches = best_matches(descriptor, descriptors, exclude, pair_budget, progress)
-    return score_protocol1(matches, positions, gt, recall_denominator, forward, lidar_poses)
+    limits = database_limits(len(positions), settings, times)
+    gt = ground_truth_for(positions, settings, limits=limits)
+    matches = match_protocol1(descriptor, descriptors, limits, settings, progress, executor)
+    return score_protocol1(matches, positions, gt, settings, forward, lidar_poses)

@@ -21,20 +21,26 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.evaluation.ground_truth import GroundTruth, compute_ground_truth
+from lidar_iris_eval.evaluation.ground_truth import (
+    GroundTruth,
+    compute_ground_truth,
+    database_limits,
+    ground_truth_for,
+)
 from lidar_iris_eval.evaluation.metrics import PRCurve, pr_curve, summarize
 from lidar_iris_eval.evaluation.protocol1 import (
     Protocol1Result,
-    check_recall_denominator,
     score_protocol1,
+    settings_from,
     stacked_descriptors,
 )
+from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.evaluation.streaming_pr import (
     PR_COUNTING,
     StreamedAffinity,
     stream_protocol2,
 )
-from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET, Affinity, affinity_matrix
+from lidar_iris_eval.matching.blocks import Affinity, affinity_matrix
 from lidar_iris_eval.matching.retrieval import (
     PROTOCOL2_RULE,
     two_stage_affinity,
@@ -100,40 +106,44 @@ def _affinity(descriptor, descriptors, candidates, pair_budget, progress) -> tup
     return affinity, ALL_PAIRS_RULE
 
 
-def _streamed(descriptor, descriptors, gt, exclude, pair_budget, progress, storage):
-    """The all-pairs pass of a global descriptor, counted as it goes (O(N + positives))."""
-    return stream_protocol2(descriptor, descriptors, gt.pairs, gt.n_positive_pairs, exclude,
-                            pair_budget, progress, storage)
+def _streamed(descriptor, descriptors, gt, limits, pair_budget, progress, storage,
+              executor=None):
+    """The all-pairs pass of a global descriptor, counted as it goes (O(N + positives)),
+    with protocol 1's best matches over ``limits`` (None: protocol 2 only)."""
+    return stream_protocol2(descriptor, descriptors, gt.pairs, gt.n_positive_pairs, limits,
+                            pair_budget, progress, storage, executor)
 
 
 def protocol2(
     descriptor: Descriptor,
     descriptors: np.ndarray,
     positions: np.ndarray,
+    settings: Settings | None = None,
     *,
-    radius: float = 4.0,
-    distance: str = "3d",
-    frame: str = "camera",
-    pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
-    candidates: int | None = None,
     affinity_storage: str = "auto",
+    executor=None,
+    **values,
 ) -> Protocol2Result:
     """Compute the affinity of stacked descriptors and score it (ground truth from positions).
 
     ``descriptors`` is the stacked array or a :class:`~lidar_iris_eval.extract.DescriptorDB`.
-    ``candidates`` is K of a two-stage method (ignored for global descriptors).
+    ``settings`` holds the conventions (the radius, distance and pose frame
+    count here; keyword values override them as in
+    :func:`~lidar_iris_eval.evaluation.protocol1.protocol1`). ``candidates``
+    is K of a two-stage method (ignored for global descriptors).
     ``affinity_storage`` (global descriptors): which affinity to keep, see
     :data:`~lidar_iris_eval.evaluation.streaming_pr.AFFINITY_STORAGE`; the
     metrics are exact whichever is kept.
     """
+    s = settings_from(settings, **values)
     descriptors = stacked_descriptors(descriptors, positions)
-    gt = compute_ground_truth(positions, radius, 1, distance, frame)
+    gt = compute_ground_truth(positions, s.radius, 1, s.distance, s.pose_frame)
     if not descriptor.two_stage:
-        affinity, curve, _ = _streamed(descriptor, descriptors, gt, None, pair_budget, progress,
-                                       affinity_storage)
+        affinity, curve, _ = _streamed(descriptor, descriptors, gt, None, s.pair_budget,
+                                       progress, affinity_storage, executor)
         return score_protocol2(affinity, gt, ALL_PAIRS_RULE, curve)
-    affinity, rule = _affinity(descriptor, descriptors, candidates, pair_budget, progress)
+    affinity, rule = _affinity(descriptor, descriptors, s.candidates, s.pair_budget, progress)
     return score_protocol2(affinity, gt, rule)
 
 
@@ -141,38 +151,38 @@ def protocols_1_and_2(
     descriptor: Descriptor,
     descriptors: np.ndarray,
     positions: np.ndarray,
+    settings: Settings | None = None,
     *,
-    exclude: int = 30,
-    radius: float = 4.0,
-    distance: str = "3d",
-    frame: str = "camera",
-    recall_denominator: str = "revisits",
+    times: np.ndarray | None = None,
     forward: np.ndarray | None = None,
-    pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
     lidar_poses: np.ndarray | None = None,
-    candidates: int | None = None,
     affinity_storage: str = "auto",
+    executor=None,
+    **values,
 ) -> tuple[Protocol1Result, Protocol2Result]:
-    """Both protocols from one affinity pass: each distance is computed once.
+    """Both protocols from one pass: protocol 1 and 2 are reducers of the same blocks.
 
-    Protocol 1's best matches are read from the float64 blocks of the same
-    pass, so they equal those of :func:`~lidar_iris_eval.evaluation.protocol1.protocol1`.
-    A two-stage method runs its two retrieval passes instead (``candidates``
-    = K, default ``descriptor.default_candidates()``).
-    Returns ``(Protocol1Result, Protocol2Result)``.
+    Protocol 1's best matches over the per-query limits of ``settings`` are
+    read from the float64 blocks of the pass that counts protocol 2, so they
+    equal those of :func:`~lidar_iris_eval.evaluation.protocol1.protocol1`
+    and each distance is computed once. A two-stage method runs its two
+    retrieval passes instead (``candidates`` = K, default
+    ``descriptor.default_candidates()``). Returns ``(Protocol1Result, Protocol2Result)``.
     """
-    check_recall_denominator(recall_denominator)
+    s = settings_from(settings, **values)
     descriptors = stacked_descriptors(descriptors, positions)
-    gt = compute_ground_truth(positions, radius, exclude, distance, frame)
+    limits = database_limits(len(positions), s, times)
+    gt1 = ground_truth_for(positions, s, limits=limits)
+    gt2 = gt1 if s.standard else compute_ground_truth(positions, s.radius, 1, s.distance,
+                                                      s.pose_frame)
     if descriptor.two_stage:
-        k = candidates if candidates is not None else descriptor.default_candidates()
-        matches = two_stage_matches(descriptor, descriptors, exclude, k, progress)
+        k = s.candidates if s.candidates is not None else descriptor.default_candidates()
+        matches = two_stage_matches(descriptor, descriptors, limits, k, progress)
         affinity, rule = two_stage_affinity(descriptor, descriptors, k, None), PROTOCOL2_RULE
-    else:
-        affinity, curve, matches = _streamed(descriptor, descriptors, gt, exclude, pair_budget,
-                                             progress, affinity_storage)
-        p1 = score_protocol1(matches, positions, gt, recall_denominator, forward, lidar_poses)
-        return p1, score_protocol2(affinity, gt, ALL_PAIRS_RULE, curve)
-    p1 = score_protocol1(matches, positions, gt, recall_denominator, forward, lidar_poses)
-    return p1, score_protocol2(affinity, gt, rule)
+        p1 = score_protocol1(matches, positions, gt1, s, forward, lidar_poses)
+        return p1, score_protocol2(affinity, gt2, rule)
+    affinity, curve, matches = _streamed(descriptor, descriptors, gt2, limits, s.pair_budget,
+                                         progress, affinity_storage, executor)
+    p1 = score_protocol1(matches, positions, gt1, s, forward, lidar_poses)
+    return p1, score_protocol2(affinity, gt2, ALL_PAIRS_RULE, curve)

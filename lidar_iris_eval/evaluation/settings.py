@@ -1,24 +1,39 @@
-"""The conventions of one evaluation, frozen in one object.
+"""The conventions of one evaluation, frozen in one object (:class:`Settings`).
 
 Every number a result depends on besides the descriptors and the scans lives
-here, with its name: the radius of a positive, the exclusion window E (with
-the named values the literature uses), the distance, the pose frame, the
-recall denominator of protocol 1, the retrieval depth of two-stage methods
-and the memory budget of the block driver (which changes speed, not results).
+here, with its name: the radius of a positive and its inclusivity, the
+exclusion window E in frames or seconds (with the named values the literature
+uses) and its window rule, the distance, the pose frame, the recall
+denominator of protocol 1, LoGG3D-Net's "not a revisit" band, whether the
+last frame is a query, the retrieval depth of two-stage methods and the
+memory budget of the block driver (which changes speed, not results).
+
+The object is validated once, on construction; peers' presets
+(:mod:`~lidar_iris_eval.evaluation.conventions`) are instances of it, and
+:meth:`Settings.to_dict` / :meth:`Settings.from_dict` are the ``convention``
+block of ``config.yaml`` (and the source of the ``conventions`` block of
+``metrics.json``), from which the run reader rebuilds the run's own ground
+truth. ``Convention`` is the same class under the name the presets use.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
 
 from lidar_iris_eval.errors import LirisError, option
-from lidar_iris_eval.evaluation.protocol1 import RECALL_DENOMINATORS
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 
 #: named exclusion windows (PROTOCOLS.md): the paper's text vs the authors' code
 EXCLUDE_PRESETS: dict[str, int] = {"paper": 30, "reference": 300}
 DISTANCES = ("3d", "planar")
 POSE_FRAMES = ("camera", "lidar")
+RECALL_DENOMINATORS = ("revisits", "accepted")
+WINDOW_RULES = ("liris", "logg3d")
+#: the ground-truth rules (what to_dict writes besides the preset name and source)
+RULES = ("radius", "exclude", "exclude_seconds", "window_rule", "distance", "pose_frame",
+         "recall_denominator", "not_revisit_radius", "inclusive_radius", "last_frame_query")
 
 
 def resolve_exclude(value: int | str) -> tuple[int, str]:
@@ -29,6 +44,8 @@ def resolve_exclude(value: int | str) -> tuple[int, str]:
     if isinstance(value, str) and value in EXCLUDE_PRESETS:
         return EXCLUDE_PRESETS[value], value
     try:
+        if isinstance(value, bool):
+            raise ValueError
         frames = int(value)
         if isinstance(value, float) and value != frames:
             raise ValueError
@@ -43,15 +60,27 @@ def resolve_exclude(value: int | str) -> tuple[int, str]:
     return frames, named
 
 
+def _seconds(value: Any) -> float | None:
+    """``"30s"`` -> 30.0; anything else -> None."""
+    if isinstance(value, str) and value.strip().lower().endswith("s") \
+            and value.strip() not in EXCLUDE_PRESETS:
+        try:
+            return float(value.strip()[:-1])
+        except ValueError:
+            raise LirisError(option("exclude", value), "expected seconds such as 30s") from None
+    return None
+
+
 @dataclass(frozen=True)
 class Settings:
-    """Evaluation conventions (validated on construction).
+    """Evaluation conventions, validated once on construction.
 
     Attributes
     ----------
-    radius : a pair is positive when its frames are closer than this (metres).
-    exclude : E in frames, or ``"paper"`` (30) / ``"reference"`` (300);
-        stored as the number, with its name in ``exclude_name``.
+    radius : a database frame is a true match closer than this (metres).
+    exclude : E in frames, or ``"paper"`` (30) / ``"reference"`` (300), or a
+        window in seconds such as ``"30s"``; stored as the number of frames
+        (None for a window in seconds), with its name in ``exclude_name``.
     distance : ``"3d"`` or ``"planar"`` (ground plane of the pose frame).
     pose_frame : ``"camera"`` (KITTI camera poses, the paper's counts) or
         ``"lidar"``; ``camera`` falls back to ``lidar`` for sequences without
@@ -60,36 +89,109 @@ class Settings:
     candidates : K for retrieval: ``None`` = exhaustive protocol 1 for global
         descriptors, the method's default for two-stage ones.
     pair_budget : distances per block (memory bound; results do not change).
+    exclude_seconds : the window in seconds, or None for a window in frames.
+    window_rule : ``"liris"`` (database ``t_j <= t_i - T``) or ``"logg3d"``
+        (also the first scan after ``t_i - T``, and queries only once ``T``
+        has passed since the first scan).
+    not_revisit_radius : metres, or None. Accepted matches between
+        ``radius`` and this are neither true nor false positives.
+    inclusive_radius : a protocol 1 match exactly at ``radius`` is true
+        (LoGG3D's ``<=``); protocol 2 positives stay strict.
+    last_frame_query : False when the last frame is never a query.
+    name : preset name; None names it ``liris`` when every rule is liris'
+        default, else ``custom``.
+    source : where the values come from.
     """
 
     radius: float = 4.0
-    exclude: int | str = "paper"
+    exclude: int | str | None = "paper"
     distance: str = "3d"
     pose_frame: str = "camera"
     recall_denominator: str = "revisits"
     candidates: int | None = None
     pair_budget: int = DEFAULT_PAIR_BUDGET
+    exclude_seconds: float | None = None
+    window_rule: str = "liris"
+    not_revisit_radius: float | None = None
+    inclusive_radius: bool = False
+    last_frame_query: bool = True
+    name: str | None = None
+    source: str = ""
     exclude_name: str = field(init=False, default="")
 
     def __post_init__(self) -> None:
-        frames, name = resolve_exclude(self.exclude)
-        object.__setattr__(self, "exclude", frames)
-        object.__setattr__(self, "exclude_name", name)
-        if not self.radius > 0:
+        seconds = self.exclude_seconds
+        if seconds is None:
+            seconds = _seconds(self.exclude)
+        if seconds is not None:
+            if not float(seconds) > 0:
+                raise LirisError(option("exclude", f"{seconds}s"),
+                                 "exclusion window must be positive")
+            object.__setattr__(self, "exclude_seconds", float(seconds))
+            object.__setattr__(self, "exclude", None)
+            object.__setattr__(self, "exclude_name", "seconds")
+        else:
+            frames, name = resolve_exclude(self.exclude)
+            object.__setattr__(self, "exclude", frames)
+            object.__setattr__(self, "exclude_name", name)
+        try:
+            radius_ok = 0 < float(self.radius) < float("inf")
+        except (TypeError, ValueError):
+            radius_ok = False
+        if not radius_ok:
             raise LirisError(option("radius", self.radius), "radius must be positive")
-        if self.distance not in DISTANCES:
-            raise LirisError(option("distance", self.distance), f"choose from {DISTANCES}")
-        if self.pose_frame not in POSE_FRAMES:
-            raise LirisError(option("pose_frame", self.pose_frame),
-                             f"choose from {POSE_FRAMES}")
-        if self.recall_denominator not in RECALL_DENOMINATORS:
-            raise LirisError(option("recall_denominator", self.recall_denominator),
-                             f"choose from {RECALL_DENOMINATORS}")
+        for key, allowed in (("distance", DISTANCES), ("pose_frame", POSE_FRAMES),
+                             ("recall_denominator", RECALL_DENOMINATORS),
+                             ("window_rule", WINDOW_RULES)):
+            if getattr(self, key) not in allowed:
+                raise LirisError(option(key, getattr(self, key)),
+                                 f"choose from {', '.join(allowed)}")
         if self.candidates is not None and self.candidates < 1:
             raise LirisError(option("candidates", self.candidates), "must be at least 1")
         if self.pair_budget < 1:
             raise LirisError(option("pair_budget", self.pair_budget), "must be at least 1")
+        if self.not_revisit_radius is not None and not self.not_revisit_radius >= self.radius:
+            raise LirisError(option("not_revisit_radius", self.not_revisit_radius),
+                             "must be at least the radius")
+        if self.name is None:
+            default = all(getattr(self, k) == getattr(_LIRIS_RULES, k) for k in RULES) \
+                if _LIRIS_RULES is not None else True
+            object.__setattr__(self, "name", "liris" if default else "custom")
+
+    @property
+    def standard(self) -> bool:
+        """True when the ordinary protocol 1 (frame window, strict radius) applies."""
+        return (self.exclude_seconds is None and self.not_revisit_radius is None
+                and not self.inclusive_radius and self.last_frame_query)
+
+    def replace(self, **values) -> Settings:
+        """A validated copy with ``values`` replaced (see :func:`with_overrides` for names)."""
+        return dataclasses.replace(self, **values)
 
     def as_dict(self) -> dict:
-        """Plain dict of every setting (for config.yaml / metrics.json)."""
-        return asdict(self)
+        """Plain dict of every field (for tests and debugging)."""
+        return dataclasses.asdict(self)
+
+    def to_dict(self) -> dict:
+        """The ``convention`` block of ``config.yaml``: preset name, every rule, source."""
+        return {"preset": self.name, **{k: getattr(self, k) for k in RULES},
+                "source": self.source}
+
+    @classmethod
+    def from_dict(cls, block: dict, **extra) -> Settings:
+        """Rebuild from :meth:`to_dict` output (unknown keys are ignored); ``extra``
+        sets the fields that block does not hold (``candidates``, ``pair_budget``)."""
+        values = {k: block[k] for k in RULES if k in block}
+        if values.get("exclude_seconds") is not None:
+            values["exclude"] = None
+        elif values.get("exclude") is None:
+            values.pop("exclude", None)
+        name = block.get("preset", block.get("name"))
+        return cls(**values, name=name, source=block.get("source") or "", **extra)
+
+
+_LIRIS_RULES: Settings | None = None
+_LIRIS_RULES = Settings(name="liris")
+
+#: the name the conventions module and its presets use for the same object
+Convention = Settings

@@ -376,8 +376,8 @@ class _Sink:
 
 
 def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pairs: int,
-                     exclude: int | None = None, pair_budget: int | None = None,
-                     progress=None, storage: str = "auto"):
+                     exclude=None, pair_budget: int | None = None,
+                     progress=None, storage: str = "auto", executor=None):
     """Protocol 2's exact curve (and protocol 1's matches) from one block pass.
 
     Parameters
@@ -385,8 +385,13 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     descriptor, descriptors : the method and its stacked descriptors.
     pairs : ``(K, 2)`` unordered positive pairs ``i < j`` (``GroundTruth.pairs``).
     n_positive_pairs : the recall denominator (ordered positive pairs).
-    exclude : protocol 1's E, to take its best matches from the same pass.
+    exclude : protocol 1's E or per-query limits
+        (:func:`~lidar_iris_eval.matching.blocks.query_limits`), to take its
+        best matches from the same pass; None for protocol 2 only.
     storage : which affinity to keep (:data:`AFFINITY_STORAGE`).
+    executor : a :mod:`lidar_iris_eval.executor` executor; one that
+        distributes blocks (Dask) runs each block as a task returning
+        reductions only. The metrics are the same bit for bit.
 
     Memory is O(N + positives) plus one block of distances and the kept
     affinity (none, decimated or full, per ``storage``).
@@ -410,11 +415,13 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     expected, pre_evaluations = positive_values(descriptor, descriptors, pp, count=True)
     pre_s = time.perf_counter() - start
     kind = resolve_storage(storage, n)
-    from lidar_iris_eval import engine as engines
+    if exclude is not None:
+        from lidar_iris_eval.matching.blocks import query_limits
 
-    if engines.current() is not None:
+        exclude = query_limits(n, exclude)
+    if executor is not None and executor.distributes_blocks:
         kept = kind if storage != "auto" else "none"  # auto: nothing to warn about
-        return _stream_on_cluster(engines.current(), descriptor, descriptors, pp, expected,
+        return _stream_on_cluster(executor, descriptor, descriptors, pp, expected,
                                   n_positive_pairs, exclude, budget, progress, kept,
                                   pre_s, pre_evaluations)
     sink = _Sink(StreamingPR(expected, pp.weight), pp, expected, symmetric, n, kind)
@@ -448,7 +455,6 @@ def _stream_on_cluster(engine, descriptor, descriptors, pp, expected, n_positive
     """
     import time
 
-    from lidar_iris_eval.engine.tasks import stream_blocks
     from lidar_iris_eval.errors import warn
     from lidar_iris_eval.matching.blocks import BestMatches, block_rows, query_blocks
 
@@ -473,10 +479,70 @@ def _stream_on_cluster(engine, descriptor, descriptors, pp, expected, n_positive
     seconds = time.perf_counter() - start + pre_s
     matches = None
     if exclude is not None:
-        match, dist, yaw, first = res["p1"]
-        matches = BestMatches(np.arange(first, n), match, dist, yaw, seconds, evaluations,
-                              "affinity")
+        match, dist, yaw = res["p1"]
+        queries = np.flatnonzero(exclude >= 0)
+        matches = BestMatches(queries, match[queries], dist[queries], yaw[queries], seconds,
+                              evaluations, "affinity")
     affinity = StreamedAffinity(matrix=None, seconds=seconds, n_evaluations=evaluations,
                                 symmetric=bool(descriptor.symmetric), storage="none",
                                 passes=passes)
     return affinity, res["acc"].curve(n_positive_pairs), matches
+
+
+# ------------------------------------------------------------ blocks as executor tasks
+def protocol2_block(descriptor, descriptors, template: StreamingPR, pp: PositivePredictions,
+                    expected: np.ndarray, limits: np.ndarray | None, a: int, b: int) -> dict:
+    """One block of rows ``[a, b)``: negative counts, positives, protocol 1 best matches.
+
+    The block boundaries and arithmetic are those of the local pass, and the
+    reductions merge exactly (integer sums, minima), so a distributed run
+    gives the local run's metrics bit for bit.
+    """
+    import time
+
+    from lidar_iris_eval.matching.blocks import _best_in_block, _pairwise
+
+    symmetric = bool(descriptor.symmetric)
+    n = len(descriptors)
+    width = b if symmetric else n
+    start = time.perf_counter()
+    d, y = _pairwise(descriptor, descriptors[a:b], descriptors[:width])
+    seconds = time.perf_counter() - start
+    out = {"a": a, "b": b, "evaluations": d.size, "seconds": seconds}
+    if limits is not None:
+        rows = np.flatnonzero(limits[a:b] >= 0)
+        if len(rows):
+            out["p1"] = (a + rows, *_best_in_block(d[rows], y[rows], limits[a + rows]))
+    acc = template.fresh()
+    out["positives"], out["mismatch"] = count_block(acc, pp, expected, symmetric, a, b,
+                                                    d.astype(np.float32))
+    out["counts"] = acc
+    return out
+
+
+def stream_blocks(executor, descriptor, descriptors, template: StreamingPR,
+                  pp: PositivePredictions, expected: np.ndarray, blocks: list,
+                  limits: np.ndarray | None, progress) -> dict:
+    """Run every block through ``executor`` and merge the reductions (exactly)."""
+    n = len(descriptors)
+    acc = template.fresh()
+    gathered = np.empty_like(expected)
+    mismatch = False
+    evaluations, seconds = 0, 0.0
+    p1 = None
+    if limits is not None:
+        p1 = (np.full(n, -1, dtype=np.int64), np.full(n, np.inf), np.full(n, np.nan))
+    shared = (descriptor, descriptors, template, pp, expected, limits)
+    for _, r in executor.imap(protocol2_block, blocks, shared=shared):
+        acc.merge(r["counts"])
+        gathered[pp.in_rows(r["a"], r["b"])] = r["positives"]
+        mismatch |= bool(r["mismatch"])
+        evaluations += int(r["evaluations"])
+        seconds += float(r["seconds"])
+        if p1 is not None and "p1" in r:
+            rows, match, dist, yaw = r["p1"]
+            p1[0][rows], p1[1][rows], p1[2][rows] = match, dist, yaw
+        if progress is not None:
+            progress(r["b"] - r["a"])
+    return {"acc": acc, "gathered": gathered, "mismatch": mismatch, "p1": p1,
+            "evaluations": evaluations, "task_seconds": seconds}

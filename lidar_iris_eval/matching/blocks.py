@@ -122,16 +122,41 @@ def _pairwise(descriptor: Descriptor, queries, database) -> tuple[np.ndarray, np
     return dist, yaw
 
 
+def frame_limits(n_frames: int, exclude: int) -> np.ndarray:
+    """``(N,)`` limits of the standard rule: ``i - E``, ``-1`` for ``i < E``."""
+    _check_exclude(exclude)
+    limits = np.arange(n_frames, dtype=np.int64) - int(exclude)
+    return np.where(limits >= 0, limits, -1).astype(np.int64)
+
+
+def query_limits(n_frames: int, window) -> np.ndarray:
+    """Per-query database limits from an exclusion window E (int) or a limits array.
+
+    ``limits[i]`` is the last database frame query ``i`` may match; ``-1``
+    means ``i`` is not a query. The standard rule ``j <= i - E`` is
+    :func:`frame_limits`; peers' conventions give other arrays
+    (:func:`~lidar_iris_eval.evaluation.ground_truth.database_limits`).
+    """
+    if isinstance(window, (int, np.integer)):
+        return frame_limits(n_frames, int(window))
+    limits = np.asarray(window, dtype=np.int64)
+    if limits.shape != (n_frames,):
+        raise LirisError("limits", f"{limits.shape} limits for {n_frames} frames")
+    if np.any(limits >= np.arange(n_frames)):
+        raise LirisError("limits", "a query may only match earlier frames")
+    return np.where(limits >= 0, limits, -1)
+
+
 def _best_in_block(
-    dist: np.ndarray, yaw: np.ndarray, rows: np.ndarray, exclude: int
+    dist: np.ndarray, yaw: np.ndarray, limits: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Best column ``j <= i - exclude`` of each row; ties go to the smallest j."""
+    """Best column ``j <= limits[r]`` of each row ``r``; ties go to the smallest j."""
     cols = np.arange(dist.shape[1])
-    allowed = cols[None, :] <= (rows[:, None] - exclude)
+    allowed = cols[None, :] <= limits[:, None]
     masked = np.where(allowed & ~np.isnan(dist), dist, np.inf)
     match = np.argmin(masked, axis=1)
-    best = masked[np.arange(len(rows)), match]
-    best_yaw = yaw[np.arange(len(rows)), match]
+    best = masked[np.arange(len(limits)), match]
+    best_yaw = yaw[np.arange(len(limits)), match]
     none = ~np.isfinite(best)
     match = np.where(none, -1, match)
     best_yaw = np.where(none, np.nan, best_yaw)
@@ -143,45 +168,71 @@ def _check_exclude(exclude: int) -> None:
         raise LirisError(option("exclude", exclude), "exclusion window must be at least 1 frame")
 
 
+def _rows(descriptors, q: np.ndarray):
+    """``descriptors[q]``, as a slice when ``q`` is a contiguous run (no copy)."""
+    if len(q) and q[-1] - q[0] + 1 == len(q):
+        return descriptors[int(q[0]) : int(q[-1]) + 1]
+    return descriptors[q]
+
+
+def query_row_blocks(limits: np.ndarray, pair_budget: int) -> list[np.ndarray]:
+    """The protocol 1 blocks: runs of ``block_rows`` query indices (``limits >= 0``)."""
+    queries = np.flatnonzero(limits >= 0)
+    rows = block_rows(len(limits), pair_budget)
+    return [queries[a : a + rows] for a in range(0, len(queries), rows)]
+
+
+def protocol1_block(descriptor: Descriptor, descriptors, q: np.ndarray, lim: np.ndarray):
+    """Best matches of queries ``q`` over ``j <= lim`` (one block; also a Dask task).
+
+    The database is ``[0, max(lim) + 1)``, what the block's last query may
+    see; returns ``(evaluations, match, distance, yaw)``.
+    """
+    database = descriptors[: int(lim.max()) + 1]
+    d, y = _pairwise(descriptor, _rows(descriptors, q), database)
+    return d.size, *_best_in_block(d, y, lim)
+
+
 def best_matches(
     descriptor: Descriptor,
     descriptors: np.ndarray,
-    exclude: int,
+    exclude,
     pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
+    executor=None,
 ) -> BestMatches:
-    """Exhaustive protocol 1 search: each query ``i >= exclude`` against ``j <= i - exclude``.
+    """Exhaustive protocol 1 search of each query over its database ``j <= limits[i]``.
 
-    A block of queries ``[a, b)`` is compared with the database ``[0, b - exclude)``
-    (what its last query may see); the few pairs beyond each query's own
-    limit are masked out, which wastes at most half a block per block.
-    With a Dask engine active (``--scheduler``) the blocks are cluster tasks.
+    ``exclude`` is E (the standard ``j <= i - E``) or the ``(N,)`` per-query
+    limits (:func:`query_limits`). A block of queries is compared with the
+    database its last query may see; the few pairs beyond each query's own
+    limit are masked out. ``executor`` (:mod:`lidar_iris_eval.engine`), when
+    given, runs the blocks (e.g. as Dask tasks); the results do not change.
     """
-    _check_exclude(exclude)
-    from lidar_iris_eval import engine as engines
-
-    if engines.current() is not None:
-        from lidar_iris_eval.engine.tasks import best_matches_on_cluster
-
-        return best_matches_on_cluster(engines.current(), descriptor, descriptors, exclude,
-                                       pair_budget, progress)
     n = len(descriptors)
-    queries = np.arange(min(exclude, n), n)
+    limits = query_limits(n, exclude)
+    queries = np.flatnonzero(limits >= 0)
     match = np.empty(len(queries), dtype=np.int64)
     dist = np.empty(len(queries))
     yaw = np.empty(len(queries))
     evaluations = 0
-    rows_per_block = block_rows(n, pair_budget)
-    warm_up(descriptor, descriptors)  # compilation is not matching cost
+    blocks = query_row_blocks(limits, pair_budget)
+    distributed = executor is not None and executor.distributes_blocks
+    if not distributed:
+        warm_up(descriptor, descriptors)  # compilation is not matching cost
     start = time.perf_counter()
-    for a, b in query_blocks(min(exclude, n), n, rows_per_block):
-        database = descriptors[: b - exclude]
-        d, y = _pairwise(descriptor, descriptors[a:b], database)
-        evaluations += d.size
-        k = slice(a - queries[0], b - queries[0])
-        match[k], dist[k], yaw[k] = _best_in_block(d, y, np.arange(a, b), exclude)
+    offsets = np.cumsum([0] + [len(q) for q in blocks])
+    tasks = [(q, limits[q]) for q in blocks]
+    if distributed:
+        done = executor.imap(protocol1_block, tasks, shared=(descriptor, descriptors))
+    else:
+        done = ((i, protocol1_block(descriptor, descriptors, *t)) for i, t in enumerate(tasks))
+    for index, (size, m, d, y) in done:
+        k = slice(offsets[index], offsets[index + 1])
+        match[k], dist[k], yaw[k] = m, d, y
+        evaluations += int(size)
         if progress is not None:
-            progress(b - a)
+            progress(len(blocks[index]))
     seconds = time.perf_counter() - start
     return BestMatches(queries, match, dist, yaw, seconds, evaluations, "exhaustive")
 
@@ -197,6 +248,8 @@ def affinity_matrix(
 ) -> tuple[Affinity, BestMatches | None]:
     """The ``(N, N)`` float32 affinity and, when ``exclude`` is given, protocol 1 matches.
 
+    ``exclude`` is E or the per-query limits (:func:`query_limits`).
+
     A symmetric descriptor is evaluated on the lower triangle only (each block
     of rows ``[a, b)`` against columns ``[0, b)``) and mirrored, so each
     unordered pair is computed once apart from the small diagonal blocks.
@@ -208,15 +261,13 @@ def affinity_matrix(
     matching time. ``store=False`` keeps no matrix (``Affinity.matrix`` is None),
     so memory stays O(N) plus one block.
     """
-    if exclude is not None:
-        _check_exclude(exclude)
     n = len(descriptors)
+    limits = query_limits(n, exclude) if exclude is not None else None
     symmetric = bool(descriptor.symmetric)
     matrix = np.empty((n, n), dtype=np.float32) if store else None
-    first_query = min(exclude, n) if exclude is not None else n
-    p1_match = np.empty(n - first_query, dtype=np.int64)
-    p1_dist = np.empty(n - first_query)
-    p1_yaw = np.empty(n - first_query)
+    p1_match = np.full(n, -1, dtype=np.int64)
+    p1_dist = np.full(n, np.inf)
+    p1_yaw = np.full(n, np.nan)
     evaluations = 0
     sink_s = 0.0
     # a symmetric pass holds at most b columns per row; size blocks for the worst case
@@ -235,23 +286,22 @@ def affinity_matrix(
             sink_start = time.perf_counter()
             sink(a, b, d)
             sink_s += time.perf_counter() - sink_start
-        if exclude is not None and b > first_query:
-            lo = max(a, first_query)
-            rows = slice(lo - a, b - a)
-            k = slice(lo - first_query, b - first_query)
-            p1_match[k], p1_dist[k], p1_yaw[k] = _best_in_block(
-                d[rows], y[rows], np.arange(lo, b), exclude
-            )
+        if limits is not None:
+            rows = np.flatnonzero(limits[a:b] >= 0)
+            if len(rows):
+                p1_match[a + rows], p1_dist[a + rows], p1_yaw[a + rows] = _best_in_block(
+                    d[rows], y[rows], limits[a + rows])
         if progress is not None:
             progress(b - a)
     if matrix is not None:
         np.fill_diagonal(matrix, np.nan)
     seconds = time.perf_counter() - start - sink_s
     affinity = Affinity(matrix, seconds, evaluations, symmetric)
-    if exclude is None:
+    if limits is None:
         return affinity, None
-    queries = np.arange(first_query, n)
-    matches = BestMatches(queries, p1_match, p1_dist, p1_yaw, seconds, evaluations, "affinity")
+    queries = np.flatnonzero(limits >= 0)
+    matches = BestMatches(queries, p1_match[queries], p1_dist[queries], p1_yaw[queries],
+                          seconds, evaluations, "affinity")
     return affinity, matches
 
 
@@ -269,14 +319,3 @@ def _fill_symmetric(matrix: np.ndarray, d: np.ndarray, a: int, b: int) -> None:
     matrix[a:b, a:b] = lower + lower.T
 
 
-def retrieval_matches(
-    descriptor: Descriptor,
-    descriptors: np.ndarray,
-    exclude: int,
-    k: int,
-    progress: Callable[[int], object] | None = None,
-) -> BestMatches:
-    """Protocol 1 through the descriptor's retrieval stage (see :mod:`.retrieval`)."""
-    from lidar_iris_eval.matching.retrieval import two_stage_matches
-
-    return two_stage_matches(descriptor, descriptors, exclude, k, progress)

@@ -10,8 +10,9 @@ Two kinds of method use this module:
   k-d tree) run protocol 1 on ``candidates=K`` the same way; their default
   ``verify`` is the full descriptor distance with a yaw-only pose.
 
-Protocol 1 (:func:`two_stage_matches`): for each query ``i >= E`` the
-candidates are ``retrieve(db, i, i - E + 1, K)``, restricted to valid
+Protocol 1 (:func:`two_stage_matches`): for each query ``i`` (``limits[i] >= 0``,
+the standard rule is ``limits[i] = i - E``) the candidates are
+``retrieve(db, i, limits[i] + 1, K)``, restricted to valid
 indices, de-duplicated and sorted by frame index, then verified; the match is
 the smallest score (ties: the smaller frame index), and its score is the
 distance the PR curve thresholds. A query whose candidates are all rejected
@@ -29,7 +30,7 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor, Verification
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.matching.blocks import Affinity, BestMatches
+from lidar_iris_eval.matching.blocks import Affinity, BestMatches, query_limits
 from lidar_iris_eval.matching.geometry import yaw_deg_of
 
 #: how protocol 2 scores a two-stage method (written to metrics.json)
@@ -94,7 +95,7 @@ def _warm_up(descriptor, features) -> None:
 def two_stage_matches(
     descriptor: Descriptor,
     features,
-    exclude: int,
+    exclude,
     k: int,
     progress: Callable[[int], object] | None = None,
 ) -> BestMatches:
@@ -102,16 +103,19 @@ def two_stage_matches(
 
     ``features`` is what extraction produced (stacked array or
     :class:`~lidar_iris_eval.descriptors.features.RaggedFeatures`); the
-    database is ``descriptor.prepare(features)``, built once.
+    database is ``descriptor.prepare(features)``, built once. ``exclude`` is
+    E (query ``i`` retrieves among ``j <= i - E``) or the ``(N,)`` per-query
+    limits of :func:`~lidar_iris_eval.matching.blocks.query_limits`.
     """
-    if exclude < 1:
+    if isinstance(exclude, (int, np.integer)) and exclude < 1:
         raise LirisError(f"exclude {exclude}", "exclusion window must be at least 1 frame")
     check_retrieval(descriptor, k)
     n = len(features)
+    limits = query_limits(n, exclude)
     _warm_up(descriptor, features)
     start = time.perf_counter()
     db = descriptor.prepare(features)
-    queries = np.arange(min(exclude, n), n)
+    queries = np.flatnonzero(limits >= 0)
     match = np.full(len(queries), -1, dtype=np.int64)
     dist = np.full(len(queries), np.inf)
     yaw = np.full(len(queries), np.nan)
@@ -119,7 +123,7 @@ def two_stage_matches(
     inliers = np.zeros(len(queries), dtype=np.int64)
     evaluations = 0
     for q, i in enumerate(queries):
-        cand = _candidates(descriptor, db, int(i), int(i - exclude + 1), k)
+        cand = _candidates(descriptor, db, int(i), int(limits[i] + 1), k)
         if len(cand):
             ver = _verify(descriptor, db, int(i), cand)
             score = _clean_scores(ver.score)

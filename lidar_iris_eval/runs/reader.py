@@ -30,16 +30,6 @@ MATCH_COLUMNS = ("query", "match", "distance", "is_revisit", "is_true")
 TIMING_COLUMNS = ("scan", "extract_s")
 
 
-@dataclass(frozen=True)
-class GtSettings:
-    """The ground-truth conventions a run was evaluated with (liris defaults when absent)."""
-
-    radius: float = 4.0
-    exclude: int = 30
-    distance: str = "3d"
-    pose_frame: str = "camera"
-
-
 @dataclass
 class Run:
     """A finished run folder.
@@ -174,33 +164,64 @@ class Run:
         """``poses.npy``: the ``(N, 4, 4)`` poses in the run's pose frame."""
         return self._npy("poses.npy")
 
-    def gt_settings(self) -> GtSettings:
-        """Ground-truth conventions from config.yaml, falling back to metrics.json's."""
-        merged = {**_flat(self.conventions), **_flat(self.config)}
-        defaults = GtSettings()
+    def gt_settings(self):
+        """The run's conventions as one :class:`~lidar_iris_eval.evaluation.settings.Settings`.
+
+        Rebuilt from the ``convention`` block of config.yaml
+        (``Settings.to_dict``); runs written before it are read from their
+        flat keys (config.yaml, then metrics.json), liris defaults when absent.
+        """
+        from lidar_iris_eval.evaluation.settings import Settings
+
+        block = self.config.get("convention")
         try:
-            return GtSettings(
+            if isinstance(block, dict) and "radius" in block:
+                return Settings.from_dict(block)
+            merged = {**_flat(self.conventions), **_flat(self.config)}
+            defaults = Settings()
+            seconds = merged.get("exclude_seconds")
+            if seconds is None and isinstance(merged.get("exclude"), dict):
+                seconds = merged["exclude"].get("seconds")
+            return Settings(
                 radius=float(merged.get("radius", defaults.radius)),
-                exclude=int(_scalar(merged.get("exclude", defaults.exclude))),
+                exclude=None if seconds is not None else
+                int(_scalar(merged.get("exclude", defaults.exclude))),
+                exclude_seconds=seconds,
                 distance=str(merged.get("distance", defaults.distance)),
                 pose_frame=str(merged.get("pose_frame", defaults.pose_frame)),
+                recall_denominator=str(merged.get("recall_denominator",
+                                                  defaults.recall_denominator)),
             )
-        except (TypeError, ValueError) as err:
+        except (TypeError, ValueError, LirisError) as err:
             raise LirisError(self.path / "config.yaml",
-                             f"bad ground-truth setting: {err}") from None
+                             f"bad ground-truth setting: {_one_line(err)}") from None
+
+    def times(self) -> np.ndarray | None:
+        """``times.npy`` (seconds per scan; written when the window is in seconds), or None."""
+        return self._npy("times.npy") if self.has("times.npy") else None
 
     def ground_truth(self, step: int = 1):
         """Ground truth recomputed from ``positions.npy`` exactly as the run defined it.
 
-        ``step`` > 1 keeps frames ``0, step, 2·step, …`` only (the frames of a
-        decimated affinity): their positive pairs are those of the full run,
-        but ``revisit`` then counts the exclusion window in kept frames.
+        The run's own conventions (:meth:`gt_settings`): radius, window in
+        frames or seconds (from ``times.npy``), skipped queries. ``step`` > 1
+        keeps frames ``0, step, 2·step, …`` only (the frames of a decimated
+        affinity): their positive pairs are those of the full run, but
+        ``revisit`` then counts the exclusion window in kept frames.
         """
-        from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+        from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth, ground_truth_for
 
         s = self.gt_settings()
-        return compute_ground_truth(self.positions()[::step], s.radius, s.exclude, s.distance,
-                                    s.pose_frame)
+        positions = self.positions()
+        if step > 1:  # decimated figures: the frame rule of the kept frames
+            window = s.exclude if s.exclude_seconds is None else 1
+            return compute_ground_truth(positions[::step], s.radius, window, s.distance,
+                                        s.pose_frame)
+        times = self.times()
+        if s.exclude_seconds is not None and times is None:
+            raise LirisError(self.path / "times.npy",
+                             "missing: the run's exclusion window is in seconds")
+        return ground_truth_for(positions, s, times)
 
     # ---- config.yaml -------------------------------------------------------------------
     @property

@@ -7,7 +7,6 @@ from lidar_iris_eval.descriptors.external.descriptor import (
     METRICS,
     ExternalDescriptor,
     ExternalParams,
-    external_database,
     load_external,
     parse_external_spec,
 )
@@ -16,7 +15,6 @@ __all__ = [
     "METRICS",
     "ExternalDescriptor",
     "ExternalParams",
-    "external_database",
     "load_external",
     "parse_external_spec",
 ]

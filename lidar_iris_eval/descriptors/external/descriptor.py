@@ -168,20 +168,3 @@ def load_external(name: str, path: str | Path, n_frames: int, metric: str | None
     params = ExternalParams(path=str(path.resolve()), kind=kind,
                             metric=metric if kind == "vectors" else None, sha256=digest)
     return ExternalDescriptor(params, PRESET, name=name, array=array)
-
-
-def external_database(desc: ExternalDescriptor, seq_name: str = "", fingerprint: str = ""):
-    """A :class:`~lidar_iris_eval.extract.DescriptorDB` for ``desc``, as extraction returns.
-
-    Times are NaN: the descriptors were computed elsewhere, so their cost is
-    unknown and is reported as undefined.
-    """
-    from lidar_iris_eval.config import params_dict
-    from lidar_iris_eval.extract import DescriptorDB
-
-    stacked = desc.stacked()
-    n = len(stacked)
-    return DescriptorDB(descriptor=desc.name, preset=desc.preset, params=params_dict(desc.params),
-                        descriptors=stacked, extract_s=np.full(n, np.nan),
-                        read_s=np.full(n, np.nan), sequence=seq_name, fingerprint=fingerprint,
-                        cache_path=None, from_cache=False)

@@ -194,6 +194,17 @@ class LidarIrisParams:
         if self.match_mode != "same" and self.sectors % 2:
             raise LirisError(source, "match_mode reverse/both needs an even number of sectors")
 
+    def ignored(self) -> dict[str, str]:
+        """Parameters the chosen search does not read, with the reason (warned when set)."""
+        out = {}
+        if self.shift_search != "phase":
+            out["shift_window"] = (f"shift_search is {self.shift_search!r}; only 'phase' "
+                                   "searches +-shift_window around its peak")
+        if self.shift_search != "phase+refine":
+            out["refine_peaks"] = (f"shift_search is {self.shift_search!r}; only "
+                                   "'phase+refine' tries band-correlation peaks")
+        return out
+
     @property
     def harmonics(self) -> int:
         """Number of phase-correlation harmonics actually used (below Nyquist)."""

@@ -1,0 +1,191 @@
+"""Where the work runs, passed down as one object: serial, a process pool, or Dask.
+
+The CLI builds one executor from ``--workers`` / ``--scheduler``
+(:func:`open_executor`) and gives it to extraction
+(:func:`~lidar_iris_eval.extract.extract`) and to the block passes
+(:func:`~lidar_iris_eval.evaluation.evaluate.evaluate`); nothing below the
+CLI reads global execution state.
+
+* :class:`SerialExecutor` (``--workers 1``): everything in this process;
+* :class:`ProcessExecutor` (``--scheduler processes``, the default):
+  extraction chunks in a local pool of ``workers`` processes; matching blocks
+  in this process (they share one large descriptor array);
+* :class:`DaskExecutor` (``--scheduler local`` or ``tcp://HOST:PORT``):
+  extraction chunks and matching blocks are cluster tasks. A matching task
+  returns reductions only (per-row best matches, per-block counts), never a
+  distance matrix, and the reductions merge exactly, so the metrics equal the
+  serial ones bit for bit.
+
+Every executor has ``imap(fn, tasks, shared=())``, which yields
+``(index, fn(*shared, *tasks[index]))`` as tasks finish (any order), and
+``describe()`` for ``config.yaml``. Dask is an optional extra:
+``pip install "lidar-iris-eval[dask]"``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from lidar_iris_eval.errors import LirisError
+
+SCHEDULERS = ("processes", "local")
+#: environment of worker processes: one numba / BLAS / OpenMP thread each
+ONE_THREAD_ENV = {var: "1" for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                       "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
+
+
+@dataclass(frozen=True)
+class SerialExecutor:
+    """Everything in this process, in order."""
+
+    workers: int = 1
+    scheduler: str = "processes"
+    serial: bool = True
+    distributes_blocks: bool = False
+
+    def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
+             ) -> Iterator[tuple[int, Any]]:
+        for index, task in enumerate(tasks):
+            yield index, fn(*shared, *task)
+
+    def describe(self) -> dict[str, Any]:
+        return {"scheduler": self.scheduler, "workers": self.workers}
+
+
+@dataclass(frozen=True)
+class ProcessExecutor(SerialExecutor):
+    """A local process pool of ``workers`` for extraction; blocks run in this process
+    (``imap`` is serial: a block pass shares one large descriptor array)."""
+
+    workers: int = 2
+    serial: bool = False
+
+
+@dataclass
+class DaskExecutor:
+    """A Dask client: extraction chunks and matching blocks are its tasks.
+
+    Attributes
+    ----------
+    client : the ``distributed.Client``.
+    scheduler : ``local`` or the address given.
+    workers : worker count when the executor started.
+    """
+
+    client: Any
+    scheduler: str
+    workers: int
+    serial: bool = False
+    distributes_blocks: bool = True
+
+    def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
+             ) -> Iterator[tuple[int, Any]]:
+        """Submit every task (``shared`` scattered to every worker once); yield as done."""
+        from distributed import as_completed
+
+        client = self.client
+        shared_f = client.scatter(list(shared), broadcast=True, hash=False) if shared else []
+        futures = {client.submit(fn, *shared_f, *task, pure=False): index
+                   for index, task in enumerate(tasks)}
+        try:
+            for future in as_completed(futures):
+                result = future.result()
+                index = futures[future]
+                future.release()
+                yield index, result
+        finally:
+            for future in futures:
+                future.cancel()
+
+    def describe(self) -> dict[str, Any]:
+        """For config files: which scheduler, how many workers."""
+        return {"scheduler": self.scheduler, "workers": self.workers}
+
+
+Executor = SerialExecutor | ProcessExecutor | DaskExecutor
+
+
+def check_scheduler(value: str) -> str:
+    """``processes``, ``local`` or a scheduler address; anything else is an error."""
+    if value in SCHEDULERS or "://" in value:
+        return value
+    raise LirisError(f"--scheduler {value}",
+                     "choose processes, local or a Dask scheduler address (tcp://HOST:PORT)")
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise LirisError("--scheduler", "Dask is not installed; install the optional extra: "
+                         "pip install 'lidar-iris-eval[dask]'") from None
+    return distributed
+
+
+def _one_thread_per_worker() -> None:
+    """Run on every worker: numba (and BLAS, where threadpoolctl exists) on one thread."""
+    for var, value in ONE_THREAD_ENV.items():
+        os.environ.setdefault(var, value)
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except (ImportError, ValueError):
+        pass
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:
+        pass
+
+
+def local_executor(workers: int = 1) -> SerialExecutor:
+    """Serial for one worker, a local process pool otherwise."""
+    if workers < 1:
+        raise LirisError(f"--workers {workers}", "must be at least 1")
+    return SerialExecutor() if workers == 1 else ProcessExecutor(workers=workers)
+
+
+@contextlib.contextmanager
+def open_executor(scheduler: str | None = "processes", workers: int = 1
+                  ) -> Iterator[SerialExecutor | DaskExecutor]:
+    """The executor of ``--scheduler`` / ``--workers`` for the duration of the block.
+
+    ``local`` starts a LocalCluster of ``workers`` processes with one thread
+    each (and one numba/BLAS thread, set before they start) and stops it
+    afterwards; an address connects to that cluster and leaves it running.
+    """
+    if scheduler is None or scheduler == "processes":
+        yield local_executor(workers)
+        return
+    check_scheduler(scheduler)
+    distributed = _import_distributed()
+    import dask
+
+    with contextlib.ExitStack() as stack:
+        if scheduler == "local":
+            stack.enter_context(dask.config.set(
+                {"distributed.nanny.pre-spawn-environ": dict(ONE_THREAD_ENV),
+                 "distributed.worker.daemon": False}))
+            cluster = stack.enter_context(distributed.LocalCluster(
+                n_workers=max(1, workers), threads_per_worker=1, processes=True,
+                dashboard_address=None, silence_logs=logging.ERROR))
+            client = stack.enter_context(distributed.Client(cluster))
+        else:
+            try:
+                client = stack.enter_context(distributed.Client(scheduler, timeout="20s"))
+            except OSError as err:
+                raise LirisError(f"--scheduler {scheduler}",
+                                 f"cannot reach the Dask scheduler: {err}") from None
+        client.run(_one_thread_per_worker)
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        if n_workers == 0:
+            client.wait_for_workers(1, timeout=60)
+            n_workers = len(client.scheduler_info().get("workers", {}))
+        yield DaskExecutor(client, scheduler, n_workers)
