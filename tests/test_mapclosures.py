@@ -174,3 +174,38 @@ def test_native_mode_finds_the_revisit_between_distance_split_maps():
     # a closure's pose maps the reference map's frame into the query map's (the inverse
     # would be tens of metres off); 0.5 m pixels bound the accuracy
     assert res["median_rte_m"] < 1.5 and res["median_rre_deg"] < 3.0
+
+
+# ------------------------------------------------------------------ end to end
+def test_liris_eval_records_the_local_maps_and_respects_e(tmp_path, capsys, revisit):
+    import json
+
+    from conftest import run_cli, write_kitti_sequence
+
+    _, poses, feats = revisit
+    # KITTI layout with Tr = identity: camera poses are the LiDAR poses
+    scans = [np.c_[f["points"], np.zeros(len(f["points"]))] for f in feats]
+    seq = write_kitti_sequence(tmp_path / "seq", scans, poses)
+    code, _, err = run_cli(["eval", seq, "-d", "mapclosures", "--protocol", "1", "--protocol",
+                            "2", "--exclude", "4", "--param", "mapclosures.window=4",
+                            "--cache-dir", tmp_path / "cache", "--out", tmp_path / "run",
+                            "--quiet"], capsys)
+    assert code == 0, err
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    rows = [r for r in metrics["results"] if r["descriptor"] == "mapclosures"]
+    assert {r["protocol"] for r in rows} == {1, 2}
+    for r in rows:
+        assert (r["local_map_window"], r["local_map_radius_m"], r["local_map_voxel_m"],
+                r["local_map_odometry"]) == (4, 50.0, 0.5, "gt")
+        assert r["map_closures_version"] == "2.2.0"
+    import pandas as pd
+
+    m = pd.read_csv(tmp_path / "run" / "protocol1" / "mapclosures" / "matches.csv")
+    hit = m[m["match"] >= 0]
+    assert len(hit) > 0 and (hit["match"] <= hit["query"] - 4).all()
+    assert (hit["inliers"] > 2).all() and hit["T03"].notna().all()
+    code, _, err = run_cli(["eval", seq, "-d", "mapclosures", "--protocol", "1",
+                            "--exclude", "3", "--param", "mapclosures.window=4",
+                            "--cache-dir", tmp_path / "cache", "--out", tmp_path / "run2",
+                            "--quiet"], capsys)
+    assert code == 2 and "mapclosures.window" in err and "Traceback" not in err

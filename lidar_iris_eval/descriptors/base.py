@@ -148,6 +148,14 @@ class Descriptor(abc.ABC):
         """
         raise NotImplementedError(f"{self.name} has no all-pairs distance (two-stage method)")
 
+    def run_info(self) -> dict[str, Any]:
+        """Flat keys this method adds to its rows of metrics.json (default none).
+
+        For settings a reader needs beside the metrics, such as the local maps
+        a method ran on; called after matching.
+        """
+        return {}
+
     @classmethod
     def wants_scan(cls) -> bool:
         """True when ``compute`` takes the whole scan rather than bare points."""

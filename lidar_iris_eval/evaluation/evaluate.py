@@ -306,7 +306,7 @@ def _pose_kind(p1: Protocol1Result) -> str:
 
 
 def _rows(desc, db, p1, p2, settings) -> list[dict]:
-    base = {"descriptor": desc.name, "preset": desc.preset}
+    base = {"descriptor": desc.name, "preset": desc.preset, **desc.run_info()}
     rows = []
     if p1 is not None:
         matches = p1.matches

@@ -25,6 +25,16 @@ def available() -> bool:
     return importlib.util.find_spec("map_closures") is not None
 
 
+def installed_version() -> str | None:
+    """The installed ``map-closures`` version, or None."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("map-closures")
+    except PackageNotFoundError:
+        return None
+
+
 def require(source: str = "mapclosures") -> None:
     """A LirisError naming the extra when ``map_closures`` is missing."""
     if not available():

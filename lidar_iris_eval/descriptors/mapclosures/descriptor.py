@@ -180,6 +180,24 @@ class MapClosures(Descriptor):
         """One scan thinned by MapClosures' voxel map: ``{"points": (K, 3) float32}``."""
         return {"points": thin_scan(points, self.params.voxel)}
 
+    def run_info(self) -> dict[str, Any]:
+        """The local maps this run used, and where the matching time went (metrics.json)."""
+        lm = self.params.local_maps()
+        info: dict[str, Any] = {
+            "local_map_builder": "map_closures VoxelMap of frames i-window<j<=i "
+                                 "(descriptors/mapclosures/localmap.py)",
+            "local_map_window": lm.window, "local_map_radius_m": lm.radius,
+            "local_map_voxel_m": lm.voxel, "local_map_odometry": lm.odometry,
+            "map_closures_version": backend.installed_version(),
+        }
+        if self._prepared:
+            table = self._prepared[-1][1]
+            info["local_map_points_median"] = (float(np.median(table.map_points))
+                                               if len(table.map_points) else None)
+            info["local_maps_s"] = table.seconds.get("local_maps")
+            info["map_closures_s"] = table.seconds.get("map_closures")
+        return info
+
     # ------------------------------------------------------------ matching
     def prepare(self, features: Any) -> ClosureTable:
         """Run MapClosures over the local maps of every frame, in frame order (once)."""
