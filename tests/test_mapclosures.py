@@ -209,3 +209,23 @@ def test_liris_eval_records_the_local_maps_and_respects_e(tmp_path, capsys, revi
                             "--cache-dir", tmp_path / "cache", "--out", tmp_path / "run2",
                             "--quiet"], capsys)
     assert code == 2 and "mapclosures.window" in err and "Traceback" not in err
+
+
+def test_native_mode_with_kiss_icp_odometry_splits_maps_as_the_true_poses_do():
+    # KISS-ICP locks onto a regular 0.5 m ground grid (it stays at the origin): scatter it
+    world = box_world()
+    rng = np.random.default_rng(3)
+    ground = rng.uniform(-45, 45, (30000, 2))
+    world = np.vstack([world[world[:, 2] > 0.01], np.c_[ground, np.zeros(len(ground))]])
+    poses = np.array([planar_pose(-30 + 2 * k, 0, 0) for k in range(30)])  # no turn: ICP
+    scans = [scan_of(world, T) for T in poses]
+    runs = {odo: evaluate_native(scans, poses, settings=NativeSettings(
+        map_range=15.0, max_range=30.0, odometry=odo)) for odo in ("gt", "kiss-icp")}
+    assert runs["kiss-icp"]["odometry"] == "kiss-icp"
+    gt_ranges = np.asarray(runs["gt"]["scan_ranges"])
+    kiss_ranges = np.asarray(runs["kiss-icp"]["scan_ranges"])
+    # a map closes every 8 scans (16 m > 15 m); odometry may lag a scan at a boundary
+    assert len(gt_ranges) == len(kiss_ranges) == 4
+    assert np.abs(kiss_ranges - gt_ranges).max() <= 1
+    with pytest.raises(LirisError, match="odometry"):
+        NativeSettings(odometry="imu")

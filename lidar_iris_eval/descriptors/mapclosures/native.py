@@ -1,8 +1,10 @@
 """MapClosures' native mode: local maps split by distance, closures between maps.
 
 This reproduces how MapClosures' own ``map_closure_pipeline`` (``pipeline.py``
-of PRBonn/MapClosures 2.2.0) runs, with the sequence's poses in place of its
-KISS-ICP odometry, and scores it the way its ``tools/evaluation.py`` does:
+of PRBonn/MapClosures 2.2.0) runs, with the sequence's poses (``gt``, the
+default) or KISS-ICP configured as its pipeline does (``kiss-icp``: 1 m
+voxels, 100 m range; no per-point times, so no deskewing), and scores it the
+way its ``tools/evaluation.py`` does:
 
 * **local maps**: every scan (points within ``max_range``) is integrated
   into a voxel map (``density_map_resolution`` m) in the frame of the map's
@@ -56,17 +58,34 @@ class NativeSettings:
     max_range: float = 100.0
     overlap: float = 0.5
     overlap_voxel: float = 0.5
+    odometry: str = "gt"
+
+    def __post_init__(self) -> None:
+        if self.odometry not in ODOMETRY:
+            from lidar_iris_eval.errors import LirisError
+
+            raise LirisError("--odometry", f"{self.odometry!r}: choose from {', '.join(ODOMETRY)}")
+
+
+#: where the native mode's scan poses come from: the sequence's, or KISS-ICP as MapClosures runs
+ODOMETRY = ("gt", "kiss-icp")
 
 
 @dataclass
 class NativeMaps:
-    """The local maps of one sequence and MapClosures' closures between them."""
+    """The local maps of one sequence and MapClosures' closures between them.
+
+    ``map_poses`` are the poses the maps were built with (odometry); the
+    ground truth places maps with ``gt_map_poses``, the ground-truth poses of
+    each map's first scan (equal to ``map_poses`` with ``gt`` odometry).
+    """
 
     scan_ranges: np.ndarray  # (M, 2) [first, last + 1) scan of each map, as its pipeline logs
     map_poses: np.ndarray  # (M, 4, 4) world pose of each map's frame
     points: list  # M arrays (K, 3), each in its map's frame
     closures: np.ndarray  # (C, 3) int64 ref, query, inliers
     closure_poses: np.ndarray  # (C, 4, 4) ref map frame -> query map frame
+    gt_map_poses: np.ndarray | None = None  # (M, 4, 4) ground-truth pose of each map's frame
 
 
 def build_maps(scans, poses: np.ndarray, params: MapClosuresParams | None = None,
@@ -81,12 +100,19 @@ def build_maps(scans, poses: np.ndarray, params: MapClosuresParams | None = None
     pb = backend.pybind()
     closer = backend.closer(params.closure_config())
     n = len(poses)
+    gt_poses = np.asarray(poses, dtype=np.float64)
+    kiss = _kiss_icp(settings.max_range) if settings.odometry == "kiss-icp" else None
+    poses = np.empty_like(gt_poses) if kiss is not None else gt_poses
     vmap = pb._VoxelMap(float(params.density_map_resolution), float(settings.max_range))
-    map_pose = np.asarray(poses[0], dtype=np.float64)
+    map_pose = np.eye(4) if kiss is not None else gt_poses[0].copy()
     start, ranges, map_poses, maps, closures, closure_poses = 0, [], [], [], [], []
+    starts = []
     for i in tqdm(range(n), desc="mapclosures native", unit="scan", file=sys.stderr,
                   disable=not progress, leave=False):
         pts = np.asarray(scans[i], dtype=np.float64)
+        if kiss is not None:  # its pipeline integrates KISS-ICP's (deskewed) frame
+            pts, _ = kiss.register_frame(pts, np.empty(0))
+            poses[i] = kiss.last_pose
         pts = pts[np.linalg.norm(pts, axis=1) < settings.max_range]
         frame_to_map = np.linalg.inv(map_pose) @ poses[i]
         vmap._integrate_frame(pb._Vector3dVector(pts), frame_to_map)
@@ -97,6 +123,7 @@ def build_maps(scans, poses: np.ndarray, params: MapClosuresParams | None = None
                 closures.append((c.source_id, c.target_id, c.number_of_inliers))
                 closure_poses.append(np.asarray(c.pose, dtype=np.float64))
             ranges.append((start, i + 1))
+            starts.append(start)
             map_poses.append(map_pose.copy())
             maps.append(cloud)
             vmap._remove_far_away_points(frame_to_map[:3, 3])
@@ -107,7 +134,19 @@ def build_maps(scans, poses: np.ndarray, params: MapClosuresParams | None = None
             start = i
     return NativeMaps(np.asarray(ranges, np.int64).reshape(-1, 2), np.asarray(map_poses),
                       maps, np.asarray(closures, np.int64).reshape(-1, 3),
-                      np.asarray(closure_poses, np.float64).reshape(-1, 4, 4))
+                      np.asarray(closure_poses, np.float64).reshape(-1, 4, 4),
+                      gt_poses[np.asarray(starts, np.int64)])
+
+
+def _kiss_icp(max_range: float):
+    """KISS-ICP configured as MapClosures' pipeline does (1 m voxels, ``max_range``)."""
+    backend.require()
+    import importlib
+
+    config = importlib.import_module("kiss_icp.config").KISSConfig()
+    config.mapping.voxel_size = 1.0
+    config.data.max_range = float(max_range)
+    return importlib.import_module("kiss_icp.kiss_icp").KissICP(config)
 
 
 def occupancy(points: np.ndarray, pose: np.ndarray, voxel: float) -> set:
@@ -127,8 +166,9 @@ def ground_truth_pairs(maps: NativeMaps, settings: NativeSettings | None = None
                        ) -> set[tuple[int, int]]:
     """Map pairs ``(a, b)``, ``a < b - 3``, whose occupancy overlap reaches ``settings.overlap``."""
     settings = NativeSettings() if settings is None else settings
+    placed = maps.gt_map_poses if maps.gt_map_poses is not None else maps.map_poses
     occ = [occupancy(p, T, settings.overlap_voxel) for p, T in
-           zip(maps.points, maps.map_poses, strict=True)]
+           zip(maps.points, placed, strict=True)]
     return {(a, b) for b in range(len(occ)) for a in range(b - MAPS_SKIPPED)
             if overlap(occ[a], occ[b]) >= settings.overlap}
 
@@ -159,7 +199,8 @@ def pose_errors(maps: NativeMaps, gt: set[tuple[int, int]]) -> dict[str, Any]:
     for (r, q, _), T in zip(maps.closures, maps.closure_poses, strict=True):
         if (int(r), int(q)) not in gt:
             continue
-        truth = np.linalg.inv(maps.map_poses[q]) @ maps.map_poses[r]
+        placed = maps.gt_map_poses if maps.gt_map_poses is not None else maps.map_poses
+        truth = np.linalg.inv(placed[q]) @ placed[r]
         d = np.linalg.inv(truth) @ T
         rte.append(float(np.linalg.norm(d[:3, 3])))
         rre.append(float(np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))))
@@ -183,7 +224,7 @@ def evaluate_native(scans, poses: np.ndarray, params: MapClosuresParams | None =
     at_accept = next((r for r in rows if r["inliers_threshold"] == accept), None)
     return {
         "method": "mapclosures", "mode": "native", "map_closures": backend.PINNED_VERSION,
-        "params": asdict(params), "native": asdict(settings), "poses": "gt",
+        "params": asdict(params), "native": asdict(settings), "odometry": settings.odometry,
         "n_scans": len(poses), "n_maps": len(maps.points),
         "scan_ranges": maps.scan_ranges.tolist(),
         "ground_truth": {"n_pairs": len(gt), "pairs": sorted(map(list, gt)),
@@ -212,8 +253,10 @@ def main(argv: list[str] | None = None) -> int:
                   help="Close a local map this far (m) from its first pose.")
     @click.option("--overlap", type=float, default=NativeSettings.overlap, show_default=True,
                   help="Ground truth: occupancy overlap of a true map pair.")
+    @click.option("--odometry", type=click.Choice(ODOMETRY), default="gt", show_default=True,
+                  help="Scan poses: the sequence's, or KISS-ICP's as MapClosures' pipeline.")
     @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
-    def cli(sequence, out, map_range, overlap, quiet):
+    def cli(sequence, out, map_range, overlap, odometry, quiet):
         from lidar_iris_eval.io import open_sequence
 
         backend.require()
@@ -224,7 +267,8 @@ def main(argv: list[str] | None = None) -> int:
         seq = open_sequence(sequence)
         scans = (seq[i] for i in range(len(seq)))
         result = evaluate_native(list(scans) if len(seq) < 2 else _Lazy(seq), seq.poses,
-                                 settings=NativeSettings(map_range=map_range, overlap=overlap),
+                                 settings=NativeSettings(map_range=map_range, overlap=overlap,
+                                                         odometry=odometry),
                                  progress=not quiet)
         text = json.dumps(result, indent=1)
         if out is None:
