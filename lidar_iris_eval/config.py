@@ -132,13 +132,15 @@ def params_hash(params: Any) -> str:
 
 
 def descriptor_preset_values(
-    name: str, preset: str | None, sensor: str | None = None
+    name: str, preset: str | None, sensor: str | None = None, path: Path | None = None
 ) -> tuple[str, dict[str, Any]]:
     """Values of a descriptor's preset (plus sensor overrides) from its YAML file.
 
     Returns ``(preset_name, values)``. ``preset=None`` picks the file's first preset.
+    ``path`` is the method's own ``presets.yaml`` (in its folder), when it has one;
+    otherwise ``configs/descriptors/<name>.yaml``.
     """
-    path = CONFIG_DIR / "descriptors" / f"{name}.yaml"
+    path = CONFIG_DIR / "descriptors" / f"{name}.yaml" if path is None else Path(path)
     if not path.is_file():
         return preset or "default", {}
     data = load_yaml(path)

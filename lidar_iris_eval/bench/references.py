@@ -19,18 +19,12 @@ import numpy as np
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.errors import LirisError
 
-#: descriptor name -> module holding its reference loop
-REFERENCE_MODULES = {
-    "lidar-iris": "lidar_iris_eval.descriptors.lidar_iris.reference_loop",
-    "scan-context": "lidar_iris_eval.descriptors.scan_context.reference_loop",
-    "m2dp": "lidar_iris_eval.descriptors.m2dp.reference_loop",
-    "esf": "lidar_iris_eval.descriptors.esf.reference_loop",
-}
-
 
 def reference_module(name: str) -> ModuleType | None:
-    """The ``reference_loop`` module of descriptor ``name``, or None if it has none."""
-    module = REFERENCE_MODULES.get(name)
+    """The ``reference_loop`` module in descriptor ``name``'s folder, or None if it has none."""
+    from lidar_iris_eval.descriptors import method_module
+
+    module = method_module(name, "reference_loop")
     return importlib.import_module(module) if module else None
 
 

@@ -36,7 +36,7 @@ FULL_AZIMUTH_STEPS = 2048
 
 def build_bench_descriptors(text: str, preset: str | None):
     """``--descriptor`` and ``--preset`` to descriptors; Scan Context defaults to ``exhaustive``."""
-    from lidar_iris_eval.cli.extract_cmd import parse_descriptor_specs
+    from lidar_iris_eval.cli.descriptor_options import parse_descriptor_specs
     from lidar_iris_eval.descriptors import get_descriptor
 
     return [

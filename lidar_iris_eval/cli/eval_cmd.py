@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
-from lidar_iris_eval.cli.extract_cmd import build_descriptors, descriptor_options, open_input
+from lidar_iris_eval.cli.descriptor_options import build_descriptors, descriptor_options, open_input
 from lidar_iris_eval.cli.options import current_convention, ground_truth_options
 from lidar_iris_eval.cli.output import echo_json
 from lidar_iris_eval.cli.workflow import (

@@ -34,7 +34,7 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
                   preset, sensor, params, reader_options: dict, scheduler: str,
                   out: Path | None, overwrite: bool) -> Path:
     """Evaluate every planned run under one scheduler; returns the parent folder."""
-    from lidar_iris_eval.cli.extract_cmd import build_descriptors, open_input
+    from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import extract_all
     from lidar_iris_eval.evaluation.evaluate import check_request, evaluate, write_run
     from lidar_iris_eval.evaluation.report import check_run_dir, default_run_dir

@@ -49,6 +49,50 @@ def available_descriptors() -> list[str]:
     return names
 
 
+def registered_names() -> list[str]:
+    """Every registered name, in registry order (the order figures list methods in)."""
+    return list(_REGISTRY)
+
+
+def registered_class(name: str) -> type[Descriptor] | None:
+    """The class registered under ``name``, or None when unknown or not importable."""
+    if name not in _REGISTRY:
+        return None
+    module_name, class_name = _REGISTRY[name].split(":")
+    try:
+        return getattr(importlib.import_module(module_name), class_name)
+    except (ImportError, AttributeError):
+        return None
+
+
+def method_module(name: str, part: str) -> str | None:
+    """``<method package>.<part>`` (e.g. ``reference_loop``) when that module exists.
+
+    A method's folder holds its own reference loop and presets, found from
+    its registry line alone.
+    """
+    if name not in _REGISTRY:
+        return None
+    package = _REGISTRY[name].split(":")[0]
+    target = f"{package}.{part}"
+    try:
+        return target if importlib.util.find_spec(target) is not None else None
+    except ModuleNotFoundError:
+        return None
+
+
+def method_folder(name: str):
+    """The folder of the package registered under ``name`` (None if it is a module)."""
+    from pathlib import Path
+
+    if name not in _REGISTRY:
+        return None
+    spec = importlib.util.find_spec(_REGISTRY[name].split(":")[0])
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(next(iter(spec.submodule_search_locations)))
+
+
 def descriptor_class(name: str) -> type[Descriptor]:
     """The class registered under ``name``; an unknown name is a LirisError."""
     if name not in available_descriptors():
@@ -68,7 +112,10 @@ def get_descriptor(
     Unknown parameter names raise :class:`~lidar_iris_eval.errors.LirisError`.
     """
     cls = descriptor_class(name)
-    preset_name, values = descriptor_preset_values(name, preset, sensor)
+    folder = method_folder(name)
+    own = folder / "presets.yaml" if folder is not None else None
+    preset_name, values = descriptor_preset_values(
+        name, preset, sensor, path=own if own is not None and own.is_file() else None)
     values.update(overrides)
     params = make_params(cls.params_type, values, source=f"{name} preset {preset_name}")
     warn_ignored(name, params, overrides)
@@ -95,5 +142,9 @@ __all__ = [
     "available_descriptors",
     "descriptor_class",
     "get_descriptor",
+    "method_folder",
+    "method_module",
     "register_descriptor",
+    "registered_class",
+    "registered_names",
 ]

@@ -125,6 +125,10 @@ class Descriptor(abc.ABC):
     takes_scan: ClassVar[bool] = False
     #: True for retrieval + verification methods without an all-pairs distance
     two_stage: ClassVar[bool] = False
+    #: how figures and tables name the method (default: the registry name)
+    label: ClassVar[str | None] = None
+    #: its colour in every figure (default: a stable spare colour picked from its name)
+    color: ClassVar[str | None] = None
 
     def __init__(self, params: Any = None, preset: str = "custom"):
         self.params = self.params_type() if params is None else params

@@ -25,24 +25,25 @@ FORMATS = ("png", "pdf", "svg")
 #: formats that stay sharp at any size; a PNG is always accompanied by a PDF
 VECTOR_FORMATS = ("pdf", "svg")
 
-#: fixed colours per registry name (Okabe–Ito, safe for colour-blind readers)
-METHOD_COLORS = {
-    "lidar-iris": "#D55E00",
-    "scan-context": "#0072B2",
-    "m2dp": "#009E73",
-    "esf": "#CC79A7",
-}
-#: colours for methods outside the registry, picked by a stable hash of the name
+#: colours for methods that name none (``Descriptor.color``), picked by a stable hash of
+#: the name; each method's own label and colour live in its folder under descriptors/
 _SPARE_COLORS = ("#E69F00", "#56B4E9", "#8C564B", "#7F7F7F", "#000000")
 
-METHOD_LABELS = {
-    "lidar-iris": "LiDAR Iris",
-    "scan-context": "Scan Context",
-    "m2dp": "M2DP",
-    "esf": "ESF",
-}
-#: the registry order: methods are always listed in it so legends line up
-METHOD_ORDER = tuple(METHOD_COLORS)
+
+def _method_attr(name: str, attr: str) -> str | None:
+    """``label`` or ``color`` of the registered method ``name`` (None if unknown)."""
+    from lidar_iris_eval.descriptors import registered_class
+
+    cls = registered_class(name)
+    return getattr(cls, attr, None) if cls is not None else None
+
+
+def method_order() -> tuple[str, ...]:
+    """The registry order: methods are always listed in it so legends line up."""
+    from lidar_iris_eval.descriptors import registered_names
+
+    return tuple(registered_names())
+
 
 #: line styles that tell runs apart when `liris plot --compare` overlays them
 RUN_LINESTYLES = ("-", "--", ":", "-.")
@@ -79,19 +80,21 @@ RC = {
 
 def method_color(name: str) -> str:
     """The colour of a descriptor, identical in every figure and every run."""
-    if name in METHOD_COLORS:
-        return METHOD_COLORS[name]
+    color = _method_attr(name, "color")
+    if color:
+        return color
     return _SPARE_COLORS[zlib.crc32(name.encode()) % len(_SPARE_COLORS)]
 
 
 def method_label(name: str) -> str:
     """Human-readable descriptor name for legends and titles."""
-    return METHOD_LABELS.get(name, name)
+    return _method_attr(name, "label") or name
 
 
 def method_sort_key(name: str) -> tuple[int, str]:
     """Registry order first, unknown names after them alphabetically."""
-    return (METHOD_ORDER.index(name) if name in METHOD_ORDER else len(METHOD_ORDER), name)
+    order = method_order()
+    return (order.index(name) if name in order else len(order), name)
 
 
 def in_method_order(names: Iterable[str]) -> list[str]:

@@ -322,6 +322,8 @@ class ESF(Descriptor):
     """ESF global descriptor: 640-d float32 histogram, L1 distance, no yaw."""
 
     name = "esf"
+    label = "ESF"
+    color = "#CC79A7"
     params_type = ESFParams
     symmetric = True  # |a - b| == |b - a| exactly
 

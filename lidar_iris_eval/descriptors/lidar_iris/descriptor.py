@@ -577,6 +577,8 @@ class LidarIris(Descriptor):
     """LiDAR Iris descriptor: see the module docstring for the method and its presets."""
 
     name: ClassVar[str] = "lidar-iris"
+    label: ClassVar[str] = "LiDAR Iris"
+    color: ClassVar[str] = "#D55E00"
     params_type: ClassVar[type] = LidarIrisParams
     symmetric: ClassVar[bool] = True
 

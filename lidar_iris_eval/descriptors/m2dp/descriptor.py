@@ -343,6 +343,8 @@ class M2DP(Descriptor):
     """
 
     name = "m2dp"
+    label = "M2DP"
+    color = "#009E73"
     params_type = M2DPParams
     symmetric = True  # (a-b)**2 == (b-a)**2 exactly in IEEE arithmetic
 

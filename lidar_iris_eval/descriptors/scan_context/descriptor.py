@@ -304,6 +304,8 @@ class ScanContext(Descriptor):
     """Scan Context descriptor; see the module docstring for conventions."""
 
     name = "scan-context"
+    label = "Scan Context"
+    color = "#0072B2"
     params_type = ScanContextParams
     symmetric = False
 
