@@ -146,6 +146,7 @@ class MapClosures(Descriptor):
     """MapClosures on per-frame local maps (module docstring)."""
 
     name: ClassVar[str] = "mapclosures"
+    label: ClassVar[str] = "MapClosures"
     params_type: ClassVar[type] = MapClosuresParams
     two_stage: ClassVar[bool] = True
     warm_up: ClassVar[bool] = False
