@@ -241,14 +241,20 @@ def extract_many(
     plans = [_plan(seq, d, cache, fingerprint, ranges) for d in descriptors]
     pending = [p for p in plans if p.ready is None]
     # ranges -> the descriptors that still need them (usually every range, all of them)
+    # (a local-map method reads the scans of its window itself: a group of its own)
     needs: dict[tuple[int, int], list[int]] = {}
+    groups: dict[tuple[int, ...], list[tuple[int, int]]] = {}
     for index, plan in enumerate(pending):
+        if _reads_local_maps(plan.descriptor):
+            groups[(index,)] = list(plan.todo)
+            continue
         for r in plan.todo:
             needs.setdefault(r, []).append(index)
-    groups: dict[tuple[int, ...], list[tuple[int, int]]] = {}
     for r in ranges:
         if r in needs:
             groups.setdefault(tuple(needs[r]), []).append(r)
+    groups = {k: v for k, v in groups.items() if v}
+    needs = {r: None for todo in groups.values() for r in todo}
     done = len(seq) - sum(b - a for a, b in needs)
     names = ",".join(p.descriptor.name for p in pending) or ",".join(d.name for d in descriptors)
     bar = tqdm(total=len(seq), initial=done, desc=names, unit="scan", file=sys.stderr,
@@ -451,11 +457,12 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
     wants = [d.wants_scan() for d in descriptors]
     i, name = a, descriptors[0].name if descriptors else "descriptor"
     try:
-        if "local_map" in descriptor.inputs:
+        if len(descriptors) == 1 and _reads_local_maps(descriptors[0]):
             from lidar_iris_eval.localmaps.extraction import describe_local_maps
 
-            outputs = describe_local_maps(seq, descriptor, a, b, extract_s, read_s, tick, _warm_up)
-        for k, i in enumerate(range(a, b) if not outputs else ()):
+            outputs[0] = describe_local_maps(seq, descriptors[0], a, b, extract_s[0], read_s,
+                                             tick, _warm_up)
+        for k, i in enumerate(range(a, b) if not outputs[0] else ()):
             t0 = time.perf_counter()
             scan = seq.scan(i) if any(wants) else None
             points = seq[i] if not all(wants) else None
@@ -483,6 +490,11 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
                 f"({scan_source(seq, i, None)}); check --param / the preset's sizes")
     return [_pack(d, outputs[j], extract_s[j], read_s.copy())
             for j, d in enumerate(descriptors)]
+
+
+def _reads_local_maps(descriptor) -> bool:
+    """True for a method that declares the ``local_map`` input (built from its window)."""
+    return "local_map" in descriptor.inputs
 
 
 def _pack(descriptor, outputs: list, extract_s: np.ndarray, read_s: np.ndarray) -> dict:

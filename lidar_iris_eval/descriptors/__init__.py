@@ -23,6 +23,8 @@ _REGISTRY: dict[str, str] = {
     "esf": "lidar_iris_eval.descriptors.esf:ESF",
     "gosmatch": "lidar_iris_eval.descriptors.gosmatch:GOSMatch",
     "esm": "lidar_iris_eval.descriptors.esm:ESM",
+    # optional extra "mapclosures"; without it -d mapclosures is one error line
+    "mapclosures": "lidar_iris_eval.descriptors.mapclosures:MapClosures",
 }
 
 

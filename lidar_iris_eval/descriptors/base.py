@@ -157,6 +157,19 @@ class Descriptor(abc.ABC):
         """
         raise NotImplementedError(f"{self.name} has no all-pairs distance (two-stage method)")
 
+    def run_info(self) -> dict[str, Any]:
+        """Flat keys this method adds to its rows of metrics.json (default none).
+
+        For settings a reader needs beside the metrics, such as the local maps
+        a method ran on; called after matching. A method that reads local maps
+        reports what built them (odometry ``gt`` is an oracle).
+        """
+        if "local_map" in self.inputs and hasattr(self, "local_map_settings"):
+            lm = self.local_map_settings()
+            return {"local_map_window": lm.window, "odometry": lm.odometry,
+                    "input_filter": lm.input_filter}
+        return {}
+
     @classmethod
     def wants_scan(cls) -> bool:
         """True when ``compute`` takes the whole scan rather than bare points."""

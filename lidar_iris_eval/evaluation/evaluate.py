@@ -371,14 +371,10 @@ def _pose_kind(p1: Protocol1Result) -> str:
 
 
 def _rows(desc, db, p1, p2, settings) -> list[dict]:
-    base = {"descriptor": desc.name, "preset": desc.preset}
+    base = {"descriptor": desc.name, "preset": desc.preset, **desc.run_info()}
     qualifiers = list(getattr(db, "warnings", ()) or ())
     if qualifiers:  # a warning that qualifies the numbers travels with them (runs/schema.py)
         base["warnings"] = qualifiers
-    if "local_map" in desc.inputs:  # what built its local maps (odometry: gt is an oracle)
-        lm = desc.local_map_settings()
-        base.update(local_map_window=lm.window, odometry=lm.odometry,
-                    input_filter=lm.input_filter)
     rows = []
     if p1 is not None:
         matches = p1.matches
