@@ -60,6 +60,14 @@ __all__ = [
 ]
 
 
+def host_info() -> dict[str, Any]:
+    """Python, platform, CPU count and load average: the conditions of a run's timings
+    (wall-clock matching slows on a busy host)."""
+    return {"python": sys.version.split()[0], "platform": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "load_average_1_5_15min": [round(v, 2) for v in os.getloadavg()]}
+
+
 @dataclass(frozen=True)
 class DescriptorResult:
     """Everything computed for one descriptor."""
@@ -132,10 +140,7 @@ class Evaluation:
             "version": __version__,
             "created": self.created,
             "wall_s": self.wall_s,
-            "host": {"python": sys.version.split()[0], "platform": platform.platform(),
-                     # the conditions of the timings: wall-clock matching slows on a busy host
-                     "cpu_count": os.cpu_count(),
-                     "load_average_1_5_15min": [round(v, 2) for v in os.getloadavg()]},
+            "host": host_info(),
             "sequence": config["sequence"],
             "conventions": {
                 "radius": config["radius"],

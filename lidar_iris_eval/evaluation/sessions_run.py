@@ -15,8 +15,6 @@ folder ``liris show``, ``compare``,
 
 from __future__ import annotations
 
-import os
-import platform
 import sys
 import time
 from dataclasses import dataclass, field
@@ -37,6 +35,7 @@ from lidar_iris_eval.evaluation.cross_session import (
     cross_positives,
     evaluate_sessions,
 )
+from lidar_iris_eval.evaluation.evaluate import host_info
 from lidar_iris_eval.evaluation.ground_truth import gt_coordinates
 from lidar_iris_eval.evaluation.metrics import SUMMARY_KEYS
 from lidar_iris_eval.evaluation.ranking import RANKING_DEFINITION
@@ -108,9 +107,7 @@ class SessionsEvaluation:
             "version": __version__,
             "created": self.created,
             "wall_s": self.wall_s,
-            "host": {"python": sys.version.split()[0], "platform": platform.platform(),
-                     "cpu_count": os.cpu_count(),
-                     "load_average_1_5_15min": [round(v, 2) for v in os.getloadavg()]},
+            "host": host_info(),
             "sequence": config["sequence"],
             "database": config["database"],
             "conventions": {
