@@ -100,3 +100,15 @@ def test_esm_local_maps_through_liris_eval(tmp_path, capsys):
     for _, r in accepted.iterrows():
         R = np.array([[r[f"T{i}{j}"] for j in range(3)] for i in range(3)])
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+
+
+def test_local_maps_under_a_window_in_seconds_is_one_error_line():
+    """A seconds window (LoGG3D's convention) gives no frame count for the local map:
+    a LirisError naming --exclude, not a TypeError from int(None)."""
+    from lidar_iris_eval.descriptors import get_descriptor
+    from lidar_iris_eval.errors import LirisError
+
+    esm = get_descriptor("esm")
+    with pytest.raises(LirisError, match="--exclude"):
+        esm.bind_exclusion(None)
+    assert esm.bind_exclusion(30).window == 30

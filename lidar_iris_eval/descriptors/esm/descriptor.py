@@ -175,6 +175,9 @@ class ESM(Descriptor):
         """
         if not self.local_map:
             return self
+        if exclude is None:  # a window in seconds (e.g. --convention logg3d)
+            raise LirisError("--exclude", "ESM's local maps are the last E frames: give the "
+                             "exclusion window in frames, or --preset single-scan")
         if self.params.window == 0:
             return type(self)(dataclasses.replace(self.params, window=int(exclude)), self.preset)
         if self.params.window > exclude:
