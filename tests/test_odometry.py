@@ -217,6 +217,7 @@ def test_eval_records_kiss_icp_in_metrics_and_config(short_sequence, tmp_path, c
     row = next(r for r in metrics["results"] if r["descriptor"] == "esm")
     assert row["odometry"] == "kiss-icp"
     assert row["odometry_ms_per_scan"] > 0
+    assert metrics["conventions"]["odometry"] == "kiss-icp"
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["odometry"] == "kiss-icp"
     assert config["descriptors"][0]["params"]["odometry"] == "kiss-icp"

@@ -166,8 +166,16 @@ class Evaluation:
                               "of its kernels (compilation excluded)",
                 **convention_header(config.get("convention")),
                 **self.loop_settings.conventions(),
+                **({"odometry": config["odometry"], "odometry_rule": ODOMETRY_RULE}
+                   if config.get("odometry") else {}),
             },
         }
+
+
+#: what ``--odometry`` means, for the metrics.json header
+ODOMETRY_RULE = ("pose source of the local maps of methods that read them: gt = the sequence's "
+                 "poses (an oracle), kiss-icp = estimated from the scans alone; the ground "
+                 "truth of the protocols and the pose errors always use the sequence's poses")
 
 
 def bind_exclusion(descriptors, exclude: int) -> list:
