@@ -234,3 +234,50 @@ def test_check_odometry_names_the_flag():
     assert check_odometry("gt") == "gt"
     with pytest.raises(LirisError, match="--odometry slam"):
         check_odometry("slam")
+
+
+def _local_map_features(world_from: np.ndarray) -> list[dict]:
+    """Feature sets of 4 local maps, the world changed by ``world_from`` (4x4): frame 0
+    sees 30 segments, frames 1 and 2 others 200 m away, query frame 3 sees frame 0's
+    segments again from a pose 1.5 m and 20 degrees away."""
+    rng = np.random.default_rng(3)
+    seen = rng.uniform(-25, 25, (30, 3)) * [1, 1, 0.1]
+    emb = rng.normal(size=(30, 16)).astype(np.float32)
+    poses = [yaw_pose(0.0, (0, 0, 0)), yaw_pose(90.0, (200, 0, 0)),
+             yaw_pose(90.0, (200, 30, 0)), yaw_pose(20.0, (1.5, 0.5, 0))]
+    frames = []
+    for f, P in enumerate(poses):
+        if f in (1, 2):
+            world = seen + [200.0, 15.0 * f, 0.0]
+            e = rng.normal(size=(30, 16)).astype(np.float32)
+        else:
+            world, e = seen, emb + (0.001 if f == 3 else 0.0)
+        Pw = world_from @ P
+        ww = world @ world_from[:3, :3].T + world_from[:3, 3]
+        inv = np.linalg.inv(Pw)
+        frames.append({"embedding": e.astype(np.float32), "quality": np.ones(30),
+                       "centroids": ww @ inv[:3, :3].T + inv[:3, 3], "world": ww,
+                       "sizes": np.full(30, 200, np.int64), "pose": Pw.reshape(1, 4, 4)})
+    return frames
+
+
+def test_loop_poses_are_relative_whatever_the_odometry_world_frame():
+    """The pose ESM reports (database LiDAR frame -> query LiDAR frame) is the same when
+    the odometry's world frame moves (KISS-ICP's is the first scan's), and equals
+    inv(P_query) P_database."""
+    import dataclasses
+
+    from lidar_iris_eval.descriptors import get_descriptor
+
+    base = get_descriptor("esm")
+    esm = type(base)(dataclasses.replace(base.params, window=1, min_target=10), base.preset)
+    poses = []
+    for world_from in (np.eye(4), yaw_pose(-70.0, (500.0, -300.0, 12.0))):
+        feats = _local_map_features(world_from)
+        db = esm.prepare(feats)
+        frames, _ = esm.retrieve(db, 3, 3, 1)
+        assert list(frames) == [0]
+        poses.append(esm.verify(db, 3, frames).pose[0])
+    truth = np.linalg.inv(yaw_pose(20.0, (1.5, 0.5, 0))) @ np.eye(4)
+    np.testing.assert_allclose(poses[0], truth, atol=1e-6)
+    np.testing.assert_allclose(poses[1], poses[0], atol=1e-6)
