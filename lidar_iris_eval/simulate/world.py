@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.simulate import labels
 from lidar_iris_eval.simulate.ground import (
     REGION_ROAD,
@@ -50,12 +51,69 @@ class WorldParams:
     tree_spacing: tuple[float, float] = (6.0, 30.0)
     light_spacing: tuple[float, float] = (18.0, 45.0)
     parked_run: float = 0.45
+    # -- the ranges below were constants; their defaults are those constants, so a world
+    # -- built with them draws the same random numbers (every preset stays byte-identical)
+    #: building frontage along the street, depth, and setback behind the sidewalk (m)
+    building_front: tuple[float, float] = (8.0, 32.0)
+    building_depth: tuple[float, float] = (8.0, 24.0)
+    setback: tuple[float, float] = (1.0, 9.0)
+    #: probability that the next lot starts right after a building, else a gap drawn from
+    #: ``building_gap`` (m)
+    no_gap: float = 0.3
+    building_gap: tuple[float, float] = (2.0, 14.0)
+    #: a hedge or fence in front of a building needs at least this setback (m)
+    hedge_setback: float = 2.5
+    #: probability that a street tree keeps ``tree_spacing`` (else three times it)
+    tree_regular: float = 0.7
+    #: fraction of the kerb poles that are signs (the rest are street lights)
+    sign_fraction: float = 0.3
+    #: parked cars per run (integers, high end excluded), spacing within a run and gaps
+    #: between runs (m)
+    parked_run_cars: tuple[int, int] = (1, 7)
+    parked_spacing: tuple[float, float] = (5.0, 8.0)
+    parked_gap: tuple[float, float] = (10.0, 50.0)
+    # -- additions of the dense world; off by default (no random number is drawn for them)
+    #: bushes on the strip between sidewalk and façades: spacing range (m), None: none
+    bush_spacing: tuple[float, float] | None = None
+    #: probability that the gap between two buildings gets a wall or fence across its front
+    gap_fence: float = 0.0
+    #: probability that a building gets an entrance porch (steps and canopy, a small box)
+    #: in front of its façade
+    porch: float = 0.0
     #: opt-in (off for every preset and sequence): parked cars drawn from five body types
     #: (hatchback, sedan, estate, SUV, van) and trees with multi-lobed or conifer crowns.
     #: Off, no extra random number is drawn, so the default worlds stay byte-identical.
     #: Training data of learned segment descriptors turns it on (objects of one class must
     #: differ in shape for the same-object task to be learnable).
     shape_variety: bool = False
+
+
+#: the dense urban world (preset ``urban-dense``): near-continuous façades (narrower
+#: frontages, small setbacks and gaps, porches, walls across gaps), long runs of parked
+#: cars, more street trees and poles, bushes. The values were chosen so that segments per
+#: simulated HDL-64E scan (720 azimuth steps) and their sizes come near those of real
+#: KITTI 00 scans (docs/esm.md "Segments"); no method parameter was changed for it.
+DENSE = WorldParams(
+    empty_lot=0.05, hedge=0.6, hedge_setback=1.5,
+    tree_spacing=(8.0, 20.0), tree_regular=0.85,
+    light_spacing=(12.0, 25.0), sign_fraction=0.4,
+    parked_run=0.85, parked_run_cars=(3, 10), parked_spacing=(5.2, 7.5),
+    parked_gap=(3.0, 15.0),
+    building_front=(6.0, 20.0), building_depth=(8.0, 20.0), setback=(0.5, 5.0),
+    no_gap=0.5, building_gap=(1.5, 6.0),
+    bush_spacing=(4.0, 12.0), gap_fence=0.6, porch=0.4,
+)
+
+#: named worlds (``SimConfig.world_style``): "default" is every older preset's
+WORLD_STYLES: dict[str, WorldParams] = {"default": WorldParams(), "dense": DENSE}
+
+
+def world_params(style: str) -> WorldParams:
+    """The :class:`WorldParams` of a world style (see :data:`WORLD_STYLES`)."""
+    if style not in WORLD_STYLES:
+        raise LirisError(None, f"unknown world style {style!r}; choose from "
+                               f"{', '.join(WORLD_STYLES)}")
+    return WORLD_STYLES[style]
 
 
 @dataclass(frozen=True)
@@ -248,6 +306,17 @@ class _Placer:
                 (BOX, (cx, cy, z0 + h + 1 + rh / 2), (rx, ry, rh / 2), yaw, labels.BUILDING, 0,
                  refl)
             )
+        if self.p.porch > 0 and rng.random() < self.p.porch:  # an entrance porch
+            pw, pd = rng.uniform(1.5, 3.0), rng.uniform(0.8, 1.8)
+            ou = rng.uniform(-1, 1) * max(hx - pw, 0.0)
+            ov = -hy - pd / 2  # in front of the façade (towards the road)
+            pcx, pcy = cx + c * ou - s * ov, cy + s * ou + c * ov
+            if self.free(pcx, pcy, pw / 2, pd / 2, yaw, self.p.road_half_width
+                         + self.p.sidewalk_width + 0.2, pad=0.0):
+                ph = rng.uniform(2.4, 3.2)
+                self.rows.append((BOX, (pcx, pcy, z0 + 1 + ph / 2), (pw / 2, pd / 2, ph / 2),
+                                  yaw, labels.BUILDING, 0, refl))
+                self.claim(pcx, pcy, pw / 2, pd / 2, yaw)
         self.claim(cx, cy, hx, hy, yaw)
 
     def tree(self, x, y) -> None:
@@ -266,6 +335,15 @@ class _Placer:
             self.rows.append((ELLIPSOID, (x, y, z0 + trunk_h + 0.8 * rv), (rh, rh, rv), 0.0,
                               labels.VEGETATION, 0, 0.45))
         self.claim(x, y, 0.6, 0.6, 0.0)
+
+    def bush(self, x, y, r, h) -> None:
+        """A bush: one ellipsoid of radius ``r`` and half height ``h``, sunk a little."""
+        self._new_object()
+        rng = self.rng
+        rx, ry = r * rng.uniform(0.7, 1.0), r * rng.uniform(0.7, 1.0)
+        self.rows.append((ELLIPSOID, (x, y, self.base(x, y) + 0.7 * h), (rx, ry, h), 0.0,
+                          labels.VEGETATION, 0, 0.45))
+        self.claim(x, y, r, r, 0.0)
 
     def pole(self, x, y, yaw, sign: bool) -> None:
         self._new_object()
@@ -400,9 +478,9 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
     # buildings, yards, hedges
     s = rng.uniform(0, 10)
     while s < total:
-        front = rng.uniform(8.0, 32.0)
-        depth = rng.uniform(8.0, 24.0)
-        setback = rng.uniform(1.0, 9.0)
+        front = rng.uniform(*p.building_front)
+        depth = rng.uniform(*p.building_depth)
+        setback = rng.uniform(*p.setback)
         pt, u, n, yaw = frame(s + front / 2)
         off = w + sw + setback + depth / 2
         cx, cy = pt + n * off
@@ -415,11 +493,19 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
                     placer.tree(tx, ty)
         elif placer.free(cx, cy, front / 2, depth / 2, byaw, placer.min_building):
             placer.building(cx, cy, front / 2, depth / 2, byaw)
-            if setback > 2.5 and rng.random() < p.hedge:
+            if setback > p.hedge_setback and rng.random() < p.hedge:
                 hx, hy = pt + n * (w + sw + 0.6)
                 if placer.free(hx, hy, front / 2, 0.3, yaw, w + sw + 0.2, pad=0.0):
                     placer.wall(hx, hy, front / 2, rng.uniform(0.15, 0.5), yaw, rng.random() < 0.5)
-        s += front + (0.0 if rng.random() < 0.3 else rng.uniform(2.0, 14.0))
+        gap = 0.0 if rng.random() < p.no_gap else rng.uniform(*p.building_gap)
+        if p.gap_fence > 0 and gap > 1.5 and rng.random() < p.gap_fence:
+            # a wall or fence across the gap, on the line of this building's façade
+            gpt, _, _, gyaw = frame(s + front + gap / 2)
+            gx, gy = gpt + n * (w + sw + setback)
+            half = gap / 2 - 0.5
+            if placer.free(gx, gy, half, 0.2, gyaw, w + sw + 0.2, pad=0.0):
+                placer.wall(gx, gy, half, rng.uniform(0.1, 0.3), gyaw, rng.random() < 0.4)
+        s += front + gap
     # street trees (density varies along the street)
     s = rng.uniform(0, 10)
     while s < total:
@@ -427,26 +513,36 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
         x, y = pt + n * (w + sw - rng.uniform(0.6, 1.2))
         if placer.free(x, y, 0.5, 0.5, 0.0, w + 0.5, w + sw + 0.5, pad=0.0):
             placer.tree(x, y)
-        s += rng.uniform(*p.tree_spacing) * (1.0 if rng.random() < 0.7 else 3.0)
+        s += rng.uniform(*p.tree_spacing) * (1.0 if rng.random() < p.tree_regular else 3.0)
     # street lights and signs near the kerb
     s = rng.uniform(0, 20)
     while s < total:
         pt, u, n, yaw = frame(s)
         x, y = pt + n * (w + rng.uniform(0.3, 0.7))
         if placer.free(x, y, 0.2, 0.2, 0.0, w + 0.2, w + sw, pad=0.0):
-            placer.pole(x, y, yaw, sign=rng.random() < 0.3)
+            placer.pole(x, y, yaw, sign=rng.random() < p.sign_fraction)
         s += rng.uniform(*p.light_spacing)
     # parked cars in irregular runs
     s = rng.uniform(0, 30)
     while s < total:
         if rng.random() < p.parked_run:
-            for _ in range(rng.integers(1, 7)):
+            for _ in range(rng.integers(*p.parked_run_cars)):
                 pt, u, n, yaw = frame(s)
                 x, y = pt + n * (w - 1.2)
                 if placer.free(x, y, 2.4, 1.0, yaw, w - 2.3, w + 0.2, pad=0.0):
                     placer.car(x, y, yaw + rng.uniform(-0.04, 0.04) + (np.pi if side < 0 else 0))
-                s += rng.uniform(5.0, 8.0)
-        s += rng.uniform(10.0, 50.0)
+                s += rng.uniform(*p.parked_spacing)
+        s += rng.uniform(*p.parked_gap)
+    # bushes on the strip between the sidewalk and the façades (dense worlds only)
+    if p.bush_spacing is not None:
+        s = rng.uniform(0, 5)
+        while s < total:
+            pt, u, n, yaw = frame(s)
+            r = rng.uniform(0.5, 1.3)
+            x, y = pt + n * (w + sw + r + rng.uniform(0.1, 1.5))
+            if placer.free(x, y, r, r, 0.0, w + sw, pad=0.0):
+                placer.bush(x, y, r, rng.uniform(0.5, 1.0))
+            s += rng.uniform(*p.bush_spacing)
 
 
 def build_world(
