@@ -288,7 +288,8 @@ def write_scenario(
         "revisit_queries_E30_4m": int(len(revisits)),
         "revisit_queries_E30_4m_frame": "lidar",
         "revisit_queries_E30_4m_camera_frame": int(len(revisits_camera)),
-        "classes": {str(k): v for k, v in labels.CLASS_NAMES.items()},
+        "classes": {str(k): v for k, v in (labels.CLASS_NAMES if cfg.world_style == "default"
+                                           else labels.DENSE_CLASS_NAMES).items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
     if cfg.world_style != "default":  # the style's object densities, for the record

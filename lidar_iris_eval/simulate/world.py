@@ -80,6 +80,15 @@ class WorldParams:
     #: probability that a building gets an entrance porch (steps and canopy, a small box)
     #: in front of its façade
     porch: float = 0.0
+    #: street furniture on the sidewalk (advertising columns, waste containers, utility
+    #: cabinets, bus shelters): spacing range (m), None: none
+    furniture_spacing: tuple[float, float] | None = None
+    #: place the buildings of every street before any street object (trees, cars, ...), so
+    #: that the objects of one street do not take the lots of the next; off: street by
+    #: street, as the older presets were built
+    buildings_first: bool = False
+    #: street-tree trunk height range (m), up to the crown
+    trunk_height: tuple[float, float] = (1.5, 3.5)
     #: opt-in (off for every preset and sequence): parked cars drawn from five body types
     #: (hatchback, sedan, estate, SUV, van) and trees with multi-lobed or conifer crowns.
     #: Off, no extra random number is drawn, so the default worlds stay byte-identical.
@@ -323,7 +332,7 @@ class _Placer:
         self._new_object()
         rng = self.rng
         z0 = self.base(x, y)
-        trunk_h = rng.uniform(1.5, 3.5)
+        trunk_h = rng.uniform(*self.p.trunk_height)
         tr = rng.uniform(0.12, 0.35)
         rh = rng.uniform(1.5, 4.0)
         rv = rh * rng.uniform(0.8, 1.5)
@@ -344,6 +353,31 @@ class _Placer:
         self.rows.append((ELLIPSOID, (x, y, self.base(x, y) + 0.7 * h), (rx, ry, h), 0.0,
                           labels.VEGETATION, 0, 0.45))
         self.claim(x, y, r, r, 0.0)
+
+    def furniture(self, x, y, yaw) -> None:
+        """A piece of street furniture: an advertising column, a waste container, a
+        utility cabinet or a bus shelter (a box open to the road is one thin back wall)."""
+        self._new_object()
+        rng = self.rng
+        z0 = self.base(x, y)
+        kind = int(rng.integers(4))
+        refl = rng.uniform(0.2, 0.6)
+        if kind == 0:  # advertising column
+            r, h = rng.uniform(0.5, 0.7), rng.uniform(2.5, 3.5)
+            self.rows.append((CYLINDER, (x, y, z0 + h / 2 - 0.1), (r, r, h / 2 + 0.1), 0.0,
+                              labels.OTHER_STRUCTURE, 0, refl))
+            self.claim(x, y, r, r, 0.0)
+            return
+        if kind == 1:  # waste container
+            hx, hy, h = rng.uniform(0.6, 0.9), rng.uniform(0.45, 0.6), rng.uniform(1.2, 1.5)
+        elif kind == 2:  # utility cabinet
+            hx, hy, h = rng.uniform(0.4, 0.8), rng.uniform(0.2, 0.35), rng.uniform(1.2, 1.6)
+        else:  # bus shelter: back wall and roof as one slab
+            hx, hy, h = rng.uniform(1.5, 2.5), rng.uniform(0.05, 0.1), rng.uniform(2.3, 2.6)
+        a = yaw + rng.uniform(-0.05, 0.05)
+        self.rows.append((BOX, (x, y, z0 + h / 2 - 0.1), (hx, hy, h / 2 + 0.1), a,
+                          labels.OTHER_STRUCTURE, 0, refl))
+        self.claim(x, y, hx, hy, a)
 
     def pole(self, x, y, yaw, sign: bool) -> None:
         self._new_object()
@@ -457,15 +491,12 @@ def crown_rows(rng, x, y, z_top_trunk, rh, rv) -> list[tuple]:
     return rows
 
 
-def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
-    """Place objects along one side (+1 left, -1 right) of a centre line."""
-    rng, p = placer.rng, placer.p
+def _side_frame(line: np.ndarray, side: int):
+    """``(frame, total)``: the street frame at arc length s along one side (+1 left, -1
+    right) of a centre line (point, direction, outward normal, heading), and its length."""
     seg = np.diff(line, axis=0)
     seglen = np.linalg.norm(seg, axis=1)
     s_cum = np.concatenate([[0.0], np.cumsum(seglen)])
-    total = s_cum[-1]
-    if total < 5:
-        return
 
     def frame(s):
         k = int(np.clip(np.searchsorted(s_cum, s, side="right") - 1, 0, len(seg) - 1))
@@ -474,8 +505,29 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
         n = np.array([-u[1], u[0]]) * side
         return pt, u, n, np.arctan2(u[1], u[0])
 
+    return frame, float(s_cum[-1])
+
+
+def _walk_side(placer: _Placer, line: np.ndarray, side: int, part: str = "all") -> None:
+    """Place objects along one side (+1 left, -1 right) of a centre line.
+
+    ``part``: "all", or only the "buildings" (with their yards, hedges and walls) or only
+    the "street" (trees, poles, parked cars and the rest) for
+    :attr:`WorldParams.buildings_first`.
+    """
+    frame, total = _side_frame(line, side)
+    if total < 5:
+        return
+    if part != "street":
+        _walk_buildings(placer, frame, total)
+    if part != "buildings":
+        _walk_street(placer, frame, total, side)
+
+
+def _walk_buildings(placer: _Placer, frame, total: float) -> None:
+    """Buildings, yards, hedges and walls along one side of a street."""
+    rng, p = placer.rng, placer.p
     w, sw = p.road_half_width, p.sidewalk_width
-    # buildings, yards, hedges
     s = rng.uniform(0, 10)
     while s < total:
         front = rng.uniform(*p.building_front)
@@ -506,6 +558,13 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
             if placer.free(gx, gy, half, 0.2, gyaw, w + sw + 0.2, pad=0.0):
                 placer.wall(gx, gy, half, rng.uniform(0.1, 0.3), gyaw, rng.random() < 0.4)
         s += front + gap
+
+
+def _walk_street(placer: _Placer, frame, total: float, side: int) -> None:
+    """Street trees, poles, parked cars (and the dense world's bushes and street furniture)
+    along one side of a street."""
+    rng, p = placer.rng, placer.p
+    w, sw = p.road_half_width, p.sidewalk_width
     # street trees (density varies along the street)
     s = rng.uniform(0, 10)
     while s < total:
@@ -538,11 +597,20 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
         s = rng.uniform(0, 5)
         while s < total:
             pt, u, n, yaw = frame(s)
-            r = rng.uniform(0.5, 1.3)
+            r = rng.uniform(0.6, 1.5)
             x, y = pt + n * (w + sw + r + rng.uniform(0.1, 1.5))
             if placer.free(x, y, r, r, 0.0, w + sw, pad=0.0):
-                placer.bush(x, y, r, rng.uniform(0.5, 1.0))
+                placer.bush(x, y, r, rng.uniform(0.6, 1.2))
             s += rng.uniform(*p.bush_spacing)
+    # street furniture on the sidewalk (dense worlds only)
+    if p.furniture_spacing is not None:
+        s = rng.uniform(0, 10)
+        while s < total:
+            pt, u, n, yaw = frame(s)
+            x, y = pt + n * (w + rng.uniform(0.8, max(sw - 0.6, 0.9)))
+            if placer.free(x, y, 0.8, 0.8, yaw, w + 0.3, w + sw, pad=0.0):
+                placer.furniture(x, y, yaw)
+            s += rng.uniform(*p.furniture_spacing)
 
 
 def build_world(
@@ -569,9 +637,11 @@ def build_world(
     ground = Ground((float(origin[0]), float(origin[1])), p.height_cell, height,
                     p.region_cell, region, p.curb)
     placer = _Placer(ground, dist, p, rng)
-    for line in lines:
-        for side in (1, -1):
-            _walk_side(placer, line, side)
+    parts = ("buildings", "street") if p.buildings_first else ("all",)
+    for part in parts:
+        for line in lines:
+            for side in (1, -1):
+                _walk_side(placer, line, side, part)
     starts = np.asarray(placer.object_starts, dtype=np.int64)
     objects = np.searchsorted(starts, np.arange(len(placer.rows)), side="right").astype(np.uint32)
     return World(ground, make_primitives(placer.rows), objects)
