@@ -103,14 +103,20 @@ class WorldParams:
 #: simulated HDL-64E scan (720 azimuth steps) and their sizes come near those of real
 #: KITTI 00 scans (docs/esm.md "Segments"); no method parameter was changed for it.
 DENSE = WorldParams(
-    empty_lot=0.05, hedge=0.6, hedge_setback=1.5,
-    tree_spacing=(8.0, 20.0), tree_regular=0.85,
+    # narrower street (carriageway with parking lanes) and sidewalk
+    road_half_width=5.5, sidewalk_width=2.5,
+    # row houses: narrow, shallow (the blocks of small-mixed are 30-38 m), close to the
+    # sidewalk, often wall to wall; porches; walls or fences across most gaps
+    building_front=(5.0, 12.0), building_depth=(4.0, 7.0), setback=(0.3, 2.0),
+    no_gap=0.5, building_gap=(1.5, 5.0), empty_lot=0.0, hedge=0.6, hedge_setback=1.5,
+    porch=0.4, gap_fence=0.6, buildings_first=True,
+    # street trees every 5-12 m with lower crowns, bushes every 2-6 m, furniture
+    tree_spacing=(5.0, 12.0), tree_regular=1.0, trunk_height=(1.0, 2.5),
+    bush_spacing=(2.0, 6.0), furniture_spacing=(8.0, 20.0),
     light_spacing=(12.0, 25.0), sign_fraction=0.4,
-    parked_run=0.85, parked_run_cars=(3, 10), parked_spacing=(5.2, 7.5),
-    parked_gap=(3.0, 15.0),
-    building_front=(6.0, 20.0), building_depth=(8.0, 20.0), setback=(0.5, 5.0),
-    no_gap=0.5, building_gap=(1.5, 6.0),
-    bush_spacing=(4.0, 12.0), gap_fence=0.6, porch=0.4,
+    # kerbs nearly full of parked cars of five body types
+    parked_run=0.95, parked_run_cars=(4, 12), parked_spacing=(5.2, 7.5),
+    parked_gap=(1.0, 6.0), shape_variety=True,
 )
 
 #: named worlds (``SimConfig.world_style``): "default" is every older preset's
