@@ -34,9 +34,10 @@ def _kerb_rates(p: WorldParams) -> dict[int, float]:
     """Expected placement attempts per metre of one street side, from the parameters alone.
 
     Each kind is a renewal process along the side: street trees every ``tree_spacing``
-    (three times it with probability ``1 - tree_regular``), poles every
-    ``light_spacing`` (plus the yard trees of empty lots), parked cars in runs (a run with probability ``parked_run`` of
-    ``parked_run_cars`` cars spaced ``parked_spacing``, then a gap ``parked_gap``).
+    (three times it with probability ``1 - tree_regular``; plus the yard trees of empty
+    lots), poles every ``light_spacing``, parked cars in runs (a run with probability
+    ``parked_run`` of ``parked_run_cars`` cars spaced ``parked_spacing``, then a gap
+    ``parked_gap``).
     """
     mean = lambda r: (r[0] + r[1]) / 2  # noqa: E731
     tree = mean(p.tree_spacing) * (p.tree_regular + 3.0 * (1.0 - p.tree_regular))
