@@ -1,11 +1,11 @@
 """Every simulation preset's output stays byte-identical (golden digests of short runs).
 
-The digests were first taken before multi-session simulation was added. By
-commit f00cc22 (the release before world styles) every preset's digest already
-differed from them, cause not traced (leaving out the two later manifest keys
-``revisit_queries_E30_4m_frame`` and ``..._camera_frame`` did not restore them);
-they were retaken with the code of f00cc22, installed from that commit into a
-separate environment. The version string in ``manifest.json`` is left out so a
+The digests were first taken before multi-session simulation was added (commit
+847b9f2), in another environment: on this machine that very commit, installed
+into a separate environment, gives other digests (the ones below), as do
+f00cc22 (the release before world styles) and the world-styles branch, so the
+output depends on the environment (NumPy build), not on a change of the code.
+They were retaken here. The version string in ``manifest.json`` is left out so a
 release does not change them.
 """
 
