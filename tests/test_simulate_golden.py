@@ -4,7 +4,7 @@ The digests were first taken before multi-session simulation was added (commit
 847b9f2), in another environment: on this machine that very commit, installed
 into a separate environment, gives other digests (the ones below), as do
 f00cc22 (the release before world styles) and the world-styles branch, so the
-output depends on the environment (NumPy build), not on a change of the code.
+output depends on the environment (not traced further), not on a change of the code.
 They were retaken here. The version string in ``manifest.json`` is left out so a
 release does not change them.
 """
