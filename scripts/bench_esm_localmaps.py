@@ -12,7 +12,8 @@ and the 90th percentile as JSON, for the rule ``--describe`` (default
 ``growth``) and the uncached baseline ``--baseline`` (default ``all``) run
 frame by frame over the same local maps in the same process (so both see the
 same load), their ratio, the cache hit rate, and the 1-minute load average.
-Run it as ``OMP_NUM_THREADS=1 taskset -c 1 python ...`` for one core. ``segments``: segments per single scan and per local map
+Run it as ``OMP_NUM_THREADS=1 taskset -c 1 python ...`` for one core.
+``segments``: segments per single scan and per local map
 and their sizes (voxels) on the sequence, and per single scan on real KITTI
 scans when given (the shared scans are not consecutive: no local map of them).
 """
@@ -57,7 +58,8 @@ def bench_time(seq_path: str, exclude: int, every: int, describe: str = "growth"
     from lidar_iris_eval.localmaps import local_maps, odometry_poses
 
     seq = open_sequence(seq_path)
-    runs = {"cached": _esm(exclude, describe=describe), "baseline": _esm(exclude, describe=baseline)}
+    runs = {"cached": _esm(exclude, describe=describe),
+            "baseline": _esm(exclude, describe=baseline)}
     s = runs["cached"].local_map_settings()
     poses = odometry_poses(seq, s.odometry)
     rows = {k: [] for k in runs}

@@ -294,7 +294,7 @@ class ESM(Descriptor):
             batch = np.stack([sample_segment(pts[members[s]], seg_keys[s], sp) for s in todo])
             e = network.embed(w, arch, batch)
             emb[todo], q[todo] = e, network.quality(w, e)
-            for k, s in enumerate(todo):
+            for s in todo:
                 self.tracker.store(ids[s], int(sizes[s]), digests[s], emb[s], q[s])
         self.tracker.forget_ended(ids)
         t2 = time.thread_time()
