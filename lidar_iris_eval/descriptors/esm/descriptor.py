@@ -6,7 +6,9 @@ Two modes (``source``):
   ESM's network and PROSAC): the pipeline builds the local map of every frame
   (:mod:`lidar_iris_eval.localmaps`, the scans of the last ``window`` frames,
   ``window`` = the evaluation's E); its segments are the frame's features
-  (:mod:`.local_segments`); a query is matched against the target map of the
+  (:mod:`.local_segments`), with persistent ids and an embedding cache
+  (:mod:`.tracking`: ``describe`` = ``growth``, SegMap's rule, re-describes
+  only segments that grew by ``growth`` = 10 %); a query is matched against the target map of the
   segments of every frame ``<= i - E`` (:mod:`.target_map`), which gives one
   matched frame and a 6-DoF pose;
 * ``scan`` (preset ``single-scan``, not the authors' setting): each scan is
@@ -163,6 +165,7 @@ class ESM(Descriptor):
         self.timing = {"segmentation": 0.0, "description": 0.0, "scans": 0,
                        "described": 0, "reused": 0}
         self.tracker = SegmentTracker(self.params.describe, self.params.growth)
+        self._reused: float | None = None
         if self.local_map:  # the pipeline builds a local map per frame (extract.py)
             self.inputs = frozenset({"points", "local_map"})
 
@@ -203,6 +206,15 @@ class ESM(Descriptor):
         p = self.params
         return LocalMapSettings(window=self.window, voxel=p.voxel, radius=p.map_radius,
                                 input_filter=p.input_filter, odometry=p.odometry)
+
+    def run_info(self) -> dict[str, Any]:
+        """The local maps (base class), the embedding-cache rule and its hit rate."""
+        info = super().run_info()
+        if self.local_map:
+            info["describe_rule"] = self.params.describe
+            info["embedding_reuse_rate"] = (round(self._reused, 4) if self._reused is not None
+                                            else None)
+        return info
 
     # ------------------------------------------------------------------ describe
 
@@ -332,6 +344,8 @@ class ESM(Descriptor):
         if self.local_map:
             if frames and "world" not in frames[0]:
                 raise LirisError("esm.source", "'local-map' needs features of local maps")
+            if frames and "described" in frames[0] and len(db.quality):
+                self._reused = 1.0 - float(flat("described", np.int64, 1).mean())
             db.world = flat("world", np.float64, 3)
             db.poses = flat("pose", np.float64, 16).reshape(-1, 4, 4)
             db.alive_until = target_lifetimes(db.world, db.frame_of, n, self.params.dedup,
