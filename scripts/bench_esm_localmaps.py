@@ -1,7 +1,8 @@
 """ESM on local maps: time per frame split as the paper's Table II, and segment statistics.
 
     python scripts/bench_esm_localmaps.py time SEQ [--exclude 30] [--every 5] [--describe growth]
-    python scripts/bench_esm_localmaps.py segments SEQ [--kitti ../shared/data/kitti/samples/00]
+    python scripts/bench_esm_localmaps.py segments SEQ [SEQ ...] [--json]
+        [--kitti ../shared/data/kitti/samples/00]
 
 ``time``: for every ``--every``-th frame (after the first E), the CPU time of
 this thread (one core) for the local-map update, segmentation (clustering and
@@ -14,8 +15,10 @@ frame by frame over the same local maps in the same process (so both see the
 same load), their ratio, the cache hit rate, and the 1-minute load average.
 Run it as ``OMP_NUM_THREADS=1 taskset -c 1 python ...`` for one core.
 ``segments``: segments per single scan and per local map
-and their sizes (voxels) on the sequence, and per single scan on real KITTI
-scans when given (the shared scans are not consecutive: no local map of them).
+and their sizes (voxels) on each sequence, and per single scan on real KITTI
+scans when given (the shared scans are not consecutive: no local map of them),
+side by side as one Markdown table (``--json``: the figures as JSON). Single
+scans use SegMap's height rule (z > -1 m), as on real scans without labels.
 """
 
 from __future__ import annotations
@@ -111,32 +114,60 @@ def _sizes_summary(counts, sizes) -> dict:
             if len(sizes) else None, "segments": int(len(sizes))}
 
 
-def bench_segments(seq_path: str, exclude: int, kitti: str | None, every: int) -> dict:
+def _local_map_segments(esm, seq, exclude: int, every: int) -> dict:
+    """Segments per local map (frames >= E, every ``every``-th) and their sizes."""
     from lidar_iris_eval.descriptors.esm.local_segments import segment_local_map
-    from lidar_iris_eval.descriptors.esm.segmentation import segment_scan
-    from lidar_iris_eval.io import open_sequence
     from lidar_iris_eval.localmaps import local_maps, odometry_poses
 
-    esm = _esm(exclude)
-    sp = esm.segment_params
-    seq = open_sequence(seq_path)
-    out = {}
-    counts, sizes = [], []
-    for i in range(0, len(seq), every):
-        segs = segment_scan(seq[i], None, sp)  # height rule, as on real scans
-        counts.append(len(segs))
-        sizes.extend(segs.sizes.tolist())
-    out["simulated_single_scan"] = _sizes_summary(counts, sizes)
     s = esm.local_map_settings()
     poses = odometry_poses(seq, s.odometry)
     counts, sizes = [], []
     for frame, _ in local_maps(lambda j: seq[j], poses, s, 0, len(seq)):
         if frame.frame % every or frame.frame < exclude:
             continue
-        _, _, sz = segment_local_map(frame.points, sp)
+        _, _, sz = segment_local_map(frame.points, esm.segment_params)
         counts.append(len(sz))
         sizes.extend(sz.tolist())
-    out["simulated_local_map"] = _sizes_summary(counts, sizes)
+    return _sizes_summary(counts, sizes)
+
+
+def segments_table(results: dict[str, dict], kitti: str | None) -> str:
+    """One Markdown table of :func:`bench_segments` results, real scans first."""
+    lines = ["| | segments per cloud (median, range) | size in voxels (quartiles) |",
+             "|---|---|---|"]
+
+    def row(name: str, r: dict) -> str:
+        if r["per_cloud_median"] is None:
+            return f"| {name} | n/a | n/a |"
+        lo, hi = r["per_cloud_range"]
+        q = " / ".join(f"{v:.0f}" for v in r["size_quartiles"]) if r["size_quartiles"] else "n/a"
+        return f"| {name} | {r['per_cloud_median']:g} ({lo}–{hi}) | {q} |"
+
+    if kitti:
+        first = next(iter(results.values()))
+        lines.append(row(f"real KITTI single scans (`{kitti}`)", first["kitti_single_scan"]))
+    for seq, r in results.items():
+        lines.append(row(f"simulated single scans (`{seq}`)", r["simulated_single_scan"]))
+    for seq, r in results.items():
+        lines.append(row(f"simulated local maps (`{seq}`)", r["simulated_local_map"]))
+    return "\n".join(lines)
+
+
+def bench_segments(seq_path: str, exclude: int, kitti: str | None, every: int) -> dict:
+    """Segment statistics of one sequence (single scans, local maps) and of real scans."""
+    from lidar_iris_eval.descriptors.esm.segmentation import segment_scan
+    from lidar_iris_eval.io import open_sequence
+
+    esm = _esm(exclude)
+    sp = esm.segment_params
+    seq = open_sequence(seq_path)
+    counts, sizes = [], []
+    for i in range(0, len(seq), every):
+        segs = segment_scan(seq[i], None, sp)  # height rule, as on real scans
+        counts.append(len(segs))
+        sizes.extend(segs.sizes.tolist())
+    out = {"simulated_single_scan": _sizes_summary(counts, sizes),
+           "simulated_local_map": _local_map_segments(esm, seq, exclude, every)}
     if kitti:
         from pathlib import Path
 
@@ -154,19 +185,26 @@ def bench_segments(seq_path: str, exclude: int, kitti: str | None, every: int) -
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=["time", "segments"])
-    ap.add_argument("sequence")
+    ap.add_argument("sequence", nargs="+", help="sequence folder(s); time: the first only")
     ap.add_argument("--exclude", type=int, default=30)
     ap.add_argument("--every", type=int, default=5)
     ap.add_argument("--kitti", default=None)
-    ap.add_argument("--describe", default="growth", help="the rule timed (esm.describe)")
-    ap.add_argument("--baseline", default="all", help="the rule it is compared with")
+    ap.add_argument("--describe", default="growth", help="time: the rule timed (esm.describe)")
+    ap.add_argument("--baseline", default="all", help="time: the rule it is compared with")
+    ap.add_argument("--json", action="store_true", help="segments: JSON instead of the table")
     args = ap.parse_args()
     if args.what == "time":
-        result = bench_time(args.sequence, args.exclude, args.every, args.describe,
-                            args.baseline)
+        print(json.dumps(bench_time(args.sequence[0], args.exclude, args.every, args.describe,
+                                    args.baseline), indent=1))
+        return
+    results = {}
+    for k, seq in enumerate(args.sequence):  # real scans once, with the first sequence
+        results[seq] = bench_segments(seq, args.exclude, args.kitti if k == 0 else None,
+                                      args.every)
+    if args.json:
+        print(json.dumps(results, indent=1))
     else:
-        result = bench_segments(args.sequence, args.exclude, args.kitti, args.every)
-    print(json.dumps(result, indent=1))
+        print(segments_table(results, args.kitti))
 
 
 if __name__ == "__main__":
