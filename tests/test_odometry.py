@@ -145,14 +145,14 @@ def _perturbed_copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def _features(seq_dir: Path, odometry: str):
+def _features(seq_dir: Path, odometry: str, workers: int = 1, chunk_size: int = 50):
     from lidar_iris_eval.cli.descriptor_options import build_descriptors
     from lidar_iris_eval.extract import cache_key, extract
     from lidar_iris_eval.io import open_sequence
 
     seq = open_sequence(seq_dir)
     (esm,) = build_descriptors("esm", None, "hdl64", ("esm.window=5",), odometry)
-    db = extract(seq, esm)
+    db = extract(seq, esm, workers=workers, chunk_size=chunk_size)
     values = {k: np.asarray(v) for k, v in db.descriptors.values.items() if k != "odometry_s"}
     return values, cache_key(seq, esm), seq
 
@@ -177,6 +177,10 @@ def test_kiss_icp_features_do_not_depend_on_the_gt_poses(short_sequence, tmp_pat
     assert a.keys() == b.keys() and {"world", "pose", "centroids", "embedding"} <= set(a)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    # chunks in a process pool see the poses of the one KISS-ICP run over the sequence
+    c, _, _ = _features(short_sequence, "kiss-icp", workers=2, chunk_size=10)
+    for k in a:
+        np.testing.assert_array_equal(a[k], c[k], err_msg=k)
 
 
 @kiss
