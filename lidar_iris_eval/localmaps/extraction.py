@@ -6,7 +6,9 @@ before ``a`` are fed first, so a chunk's maps equal those of a run from frame
 0) and handed to ``descriptor.compute``. ``extract_s`` of a frame is the CPU
 time of its local-map update plus ``compute``; ``read_s`` the wall time spent
 reading the scans it added (the first frame of a chunk also reads the window
-before it).
+before it). A descriptor that keeps state from frame to frame (ESM's segment
+tracking) is told where each chunk starts (``begin_local_maps(a)``, when it
+has one), so a chunk computes the same features in any process and order.
 
 The poses come from :func:`lidar_iris_eval.localmaps.odometry.estimate_odometry`
 (``--odometry``): with ``kiss-icp`` they are estimated from the scans alone,
@@ -42,6 +44,9 @@ def describe_local_maps(seq, descriptor, a: int, b: int, extract_s: np.ndarray,
         reading[0] += time.perf_counter() - t0
         return points
 
+    begin = getattr(descriptor, "begin_local_maps", None)
+    if begin is not None:
+        begin(a)
     outputs = []
     for k, (frame, update_s) in enumerate(local_maps(read, poses, settings, a, b)):
         read_s[k], reading[0] = reading[0], 0.0

@@ -7,12 +7,17 @@ Euclidean clusters at ``radius`` (0.2 m), clusters of ``min_points`` to
 network's 256 points and normalised exactly as single-scan segments are
 (:func:`~lidar_iris_eval.descriptors.esm.segmentation.normalise`).
 
-Segmentation is redone at every frame (not SegMap's incremental segmenter with
-persistent ids): the map of frame ``i`` gives the same segments whatever frame
-extraction started from.
+The partition is computed from the whole map at every frame, so the map of
+frame ``i`` gives the same segments whatever frame extraction started from.
+Persistent segment ids and the embedding cache (which segments need the
+network) are :mod:`.tracking`'s; :func:`local_map_clusters` and
+:func:`sample_segment` are the pieces it uses (:func:`segment_local_map`, the
+untracked function, keeps its index-seeded resampling and its return).
 """
 
 from __future__ import annotations
+
+import hashlib
 
 import numpy as np
 
@@ -22,6 +27,39 @@ from lidar_iris_eval.descriptors.esm.segmentation import (
     normalise,
     resample,
 )
+
+
+def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[np.ndarray]:
+    """The segments of a local map as arrays of voxel indices (rows of ``world_points``).
+
+    Clusters of ``min_points`` to ``max_points`` voxels, ordered by their first
+    voxel (key order, the order of :func:`segment_local_map`); each array is
+    increasing.
+    """
+    pts = np.asarray(world_points, dtype=np.float64)
+    if len(pts) == 0:
+        return []
+    comp = euclidean_clusters(pts, params.radius)
+    counts = np.bincount(comp)
+    good = np.nonzero((counts >= params.min_points) & (counts <= params.max_points))[0]
+    order = np.argsort(comp, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    return [order[bounds[c]:bounds[c + 1]] for c in good]
+
+
+def content_seed(keys: np.ndarray) -> int:
+    """A 64-bit seed from a segment's voxel keys (its content, not its index in the frame)."""
+    digest = hashlib.blake2b(np.ascontiguousarray(keys, dtype="<i8").tobytes(), digest_size=8)
+    return int.from_bytes(digest.digest(), "little")
+
+
+def sample_segment(points: np.ndarray, keys: np.ndarray, params: SegmentParams) -> np.ndarray:
+    """One segment's network input: ``n_points`` resampled with the stream
+    ``[seed, content_seed(keys)]``, normalised as single-scan segments are."""
+    rng = np.random.default_rng([params.seed, content_seed(keys)])
+    normed, _ = normalise(resample(np.asarray(points, dtype=np.float64), params.n_points, rng),
+                          params.norm_scale, params.align_yaw)
+    return normed
 
 
 def segment_local_map(world_points: np.ndarray, params: SegmentParams):
