@@ -43,6 +43,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 WEIGHTS_FILE = Path(__file__).with_name("esm_weights.npz")
+#: the weights trained on local-map segments (scripts/train_esm.py --source local-maps)
+LOCALMAP_WEIGHTS_FILE = Path(__file__).with_name("esm_localmap_weights.npz")
 
 
 @dataclass(frozen=True)
