@@ -266,3 +266,15 @@ def _dominant(seg: np.ndarray, ids: np.ndarray, cls: np.ndarray, n: int) -> list
         vals, c = np.unique(cls[m], return_counts=True)
         out[int(s)] = (dominant, float(counts[top] / totals[s]), int(vals[np.argmax(c)]))
     return out
+
+
+def negative_candidates(coarse: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """``(B, B)`` True where pair ``j``'s positive may be anchor ``i``'s negative.
+
+    The in-batch rule of training: another object of the same coarse class, or
+    any other object when the batch holds no other object of that class.
+    """
+    coarse, objects = np.asarray(coarse), np.asarray(objects)
+    other = objects[:, None] != objects[None, :]
+    same_cls = (coarse[:, None] == coarse[None, :]) & other
+    return np.where(same_cls.any(axis=1, keepdims=True), same_cls, other)

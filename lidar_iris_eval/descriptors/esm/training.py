@@ -34,8 +34,13 @@ import numpy as np
 import torch
 
 from lidar_iris_eval.descriptors.esm import network
-from lidar_iris_eval.descriptors.esm.dataset import COARSE_NAMES, SegmentSet, true_pairs
-from lidar_iris_eval.descriptors.esm.metrics import retrieval_metrics
+from lidar_iris_eval.descriptors.esm.dataset import (
+    COARSE_NAMES,
+    SegmentSet,
+    negative_candidates,
+    true_pairs,
+)
+from lidar_iris_eval.descriptors.esm.metrics import retrieval_metrics, segment_retrieval
 from lidar_iris_eval.descriptors.esm.segmentation import normalise, resample
 from lidar_iris_eval.descriptors.esm.torch_net import ESMNet
 
@@ -79,10 +84,7 @@ def wl_loss(ea: torch.Tensor, ep: torch.Tensor, coarse: np.ndarray, objects: np.
     """Ratio triplet loss plus pairwise term with within-class hardest negatives."""
     d_pos = ((ea - ep) ** 2).sum(1)
     d_all = ((ea[:, None, :] - ep[None, :, :]) ** 2).sum(2)
-    other = torch.from_numpy(objects[:, None] != objects[None, :])
-    same_cls = torch.from_numpy(coarse[:, None] == coarse[None, :]) & other
-    has_same = same_cls.any(1, keepdim=True)
-    allowed = torch.where(has_same, same_cls, other)
+    allowed = torch.from_numpy(negative_candidates(coarse, objects))
     d_neg = torch.where(allowed, d_all, torch.full_like(d_all, float("inf"))).min(1).values
     trip = torch.clamp(1.0 - d_neg / (d_pos + MARGIN), min=0.0)
     return (trip + d_pos).mean(), trip.detach(), d_pos.detach()
@@ -147,28 +149,9 @@ def held_out_rows(data: SegmentSet, n: int, seed: int = 0) -> np.ndarray:
 
 def _held_out(w: dict, arch, valid: SegmentSet, rng: np.random.Generator,
               n: int = 3000, ignore_same_object: bool = False, gap: int = 10) -> dict:
-    """Figures of the exported NumPy network on (at most ``n`` of) held-out segments.
-
-    ``ignore_same_object``: pairs of one object that are not true pairs are
-    "don't care" (:func:`metrics.retrieval_metrics`'s ``ignore``).
-    """
-    vpairs = true_pairs(valid, min_frame_gap=gap)
-    rows = np.arange(len(valid))
-    if len(rows) > n:
-        rows = np.sort(rng.choice(len(valid), n, replace=False))
-    emb = network.embed(w, arch, np.stack([
-        normalise(resample(valid.segment(s), arch.n_points,
-                           np.random.default_rng([0, int(s)])), arch.norm_scale,
-                  arch.align_yaw)[0]
-        for s in rows]))
-    remap = -np.ones(len(valid), np.int64)
-    remap[rows] = np.arange(len(rows))
-    keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
-    key = valid.world_id[rows] * (int(valid.object_id.max()) + 1) + valid.object_id[rows]
-    key = np.where(valid.object_id[rows] > 0, key, -1 - np.arange(len(rows)))
-    return retrieval_metrics(emb, valid.frame[rows], remap[vpairs[keep]],
-                             world=valid.world_id[rows], coarse=valid.coarse[rows],
-                             ignore=key if ignore_same_object else None, min_frame_gap=gap)
+    """Figures of the exported NumPy network on (at most ``n`` of) held-out segments
+    (:func:`metrics.segment_retrieval`; ``rng`` is unused, the subset is seeded 0)."""
+    return segment_retrieval(w, arch, valid, gap, n, 0, ignore_same_object)
 
 
 def _save(obj, path: Path) -> None:
