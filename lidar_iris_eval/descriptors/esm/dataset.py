@@ -177,7 +177,8 @@ def simulate_local_map_segments(
     from collections import deque
 
     from lidar_iris_eval.descriptors.esm.local_segments import local_map_clusters
-    from lidar_iris_eval.localmaps import LocalMap, input_filter as get_filter
+    from lidar_iris_eval.localmaps import LocalMap
+    from lidar_iris_eval.localmaps import input_filter as get_filter
     from lidar_iris_eval.localmaps.grid import encode
     from lidar_iris_eval.simulate.pipeline import _NOISE, build_scenario
     from lidar_iris_eval.simulate.presets import resolve_config

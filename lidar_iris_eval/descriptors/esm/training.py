@@ -267,7 +267,7 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
 
 
 def validation_name(weights: Path) -> Path:
-    """The validation json beside a weights file (``esm_X_weights.npz`` -> ``esm_X_validation.json``)."""
+    """The validation json beside a weights file (``*_weights.npz``: ``*_validation.json``)."""
     weights = Path(weights)
     return weights.with_name(weights.stem.replace("weights", "validation") + ".json")
 
