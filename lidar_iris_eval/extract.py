@@ -160,8 +160,21 @@ def cache_key(seq, descriptor: Descriptor, fingerprint: str | None = None) -> Ca
         version=f"{__version__}+numpy-{np.__version__}",
         n_scans=len(seq),
         code=descriptor_code_hash(descriptor),
-        inputs=input_fingerprint(seq, descriptor.inputs),
+        inputs=_inputs_key(seq, descriptor),
     )
+
+
+def _inputs_key(seq, descriptor: Descriptor) -> str:
+    """The inputs beyond the scans: labels (cache.input_fingerprint) and, for a method
+    reading local maps, what its poses depend on (odometry.odometry_key: the GT poses'
+    hash with ``gt``, KISS-ICP's version and settings with ``kiss-icp``)."""
+    key = input_fingerprint(seq, descriptor.inputs)
+    if _reads_local_maps(descriptor) and hasattr(descriptor, "local_map_settings"):
+        from lidar_iris_eval.localmaps.odometry import odometry_key
+
+        odometry = odometry_key(seq, descriptor.local_map_settings().odometry)
+        key = f"{key};{odometry}" if key else odometry
+    return key
 
 
 def chunk_ranges(n: int, size: int) -> list[tuple[int, int]]:
@@ -269,6 +282,8 @@ def extract_many(
     with bar:
         for members, todo in groups.items():
             descs = [pending[i].descriptor for i in members]
+            if len(descs) == 1 and _reads_local_maps(descs[0]) and todo:
+                _estimate_odometry(seq, descs[0], progress)
             for (a, b), outputs in _compute_chunks(seq, descs, todo, workers, bar, executor):
                 for i, arrays in zip(members, outputs, strict=True):
                     plan = pending[i]
@@ -495,6 +510,15 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
                 f"({scan_source(seq, i, None)}); check --param / the preset's sizes")
     return [_pack(d, outputs[j], extract_s[j], read_s.copy())
             for j, d in enumerate(descriptors)]
+
+
+def _estimate_odometry(seq, descriptor, progress: bool) -> None:
+    """Run the local maps' odometry once here, before any chunk (kiss-icp: memoised per
+    process, so the chunks of this process, and pool workers forked from it, reuse it)."""
+    if hasattr(descriptor, "local_map_settings"):
+        from lidar_iris_eval.localmaps.odometry import estimate_odometry
+
+        estimate_odometry(seq, descriptor.local_map_settings().odometry, progress)
 
 
 def _reads_local_maps(descriptor) -> bool:

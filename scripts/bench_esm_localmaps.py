@@ -1,72 +1,109 @@
 """ESM on local maps: time per frame split as the paper's Table II, and segment statistics.
 
-    python scripts/bench_esm_localmaps.py time SEQ [--exclude 30] [--every 5]
-    python scripts/bench_esm_localmaps.py segments SEQ [--kitti ../shared/data/kitti/samples/00]
+    python scripts/bench_esm_localmaps.py time SEQ [--exclude 30] [--every 5] [--describe growth]
+    python scripts/bench_esm_localmaps.py segments SEQ [SEQ ...] [--json]
+        [--kitti ../shared/data/kitti/samples/00]
 
 ``time``: for every ``--every``-th frame (after the first E), the CPU time of
-this thread (one core) for the local-map update, segmentation, description
-(network), matching (k-NN over the target map + centroid consistency) and pose
-estimation (consistent sets, rigid fits); prints medians and the 90th
-percentile as JSON. ``segments``: segments per single scan and per local map
-and their sizes (voxels) on the sequence, and per single scan on real KITTI
-scans when given (the shared scans are not consecutive: no local map of them).
+this thread (one core) for the local-map update, segmentation (clustering and
+id tracking), description (resampling and the network, for the segments the
+rule re-describes), matching (k-NN over the target map + centroid
+consistency) and pose estimation (consistent sets, rigid fits); prints medians
+and the 90th percentile as JSON, for the rule ``--describe`` (default
+``growth``) and the uncached baseline ``--baseline`` (default ``all``) run
+frame by frame over the same local maps in the same process (so both see the
+same load), their ratio, the cache hit rate, and the 1-minute load average.
+Run it as ``OMP_NUM_THREADS=1 taskset -c 1 python ...`` for one core.
+``segments``: segments per single scan and per local map
+and their sizes (voxels) on each sequence, and per single scan on real KITTI
+scans when given (the shared scans are not consecutive: no local map of them),
+side by side as one Markdown table (``--json``: the figures as JSON). Single
+scans use SegMap's height rule (z > -1 m), as on real scans without labels.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import time
+import os
 
 import numpy as np
 
 
-def _esm(exclude: int):
+def _esm(exclude: int, **params):
     from lidar_iris_eval.descriptors import get_descriptor
 
-    return get_descriptor("esm").bind_exclusion(exclude)
+    esm = get_descriptor("esm").bind_exclusion(exclude)
+    if params:
+        esm = type(esm)(dataclasses.replace(esm.params, **params), esm.preset)
+    return esm
 
 
-def bench_time(seq_path: str, exclude: int, every: int) -> dict:
-    from lidar_iris_eval.descriptors.esm import network
-    from lidar_iris_eval.descriptors.esm.local_segments import segment_local_map
+STAGES = ["local_map_update", "segmentation", "description", "matching", "pose_estimation"]
+
+
+def _summary(a: np.ndarray) -> dict:
+    total = a.sum(1)
+    return {"median_ms": dict(zip(STAGES, np.median(a, 0).round(1).tolist(), strict=True)),
+            "p90_ms": dict(zip(STAGES, np.percentile(a, 90, 0).round(1).tolist(), strict=True)),
+            "total_median_ms": round(float(np.median(total)), 1),
+            "total_p90_ms": round(float(np.percentile(total, 90)), 1)}
+
+
+def bench_time(seq_path: str, exclude: int, every: int, describe: str = "growth",
+               baseline: str = "all") -> dict:
+    """Both rules over the same local maps, frame by frame (same load), chunked as
+    extraction is (tracking restarts every ``DEFAULT_CHUNK_SIZE`` frames)."""
     from lidar_iris_eval.descriptors.features import RaggedFeatures
+    from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE
     from lidar_iris_eval.io import open_sequence
     from lidar_iris_eval.localmaps import local_maps, odometry_poses
 
     seq = open_sequence(seq_path)
-    esm = _esm(exclude)
-    s = esm.local_map_settings()
+    runs = {"cached": _esm(exclude, describe=describe),
+            "baseline": _esm(exclude, describe=baseline)}
+    s = runs["cached"].local_map_settings()
     poses = odometry_poses(seq, s.odometry)
-    w, arch = esm.weights()
-    rows, feats = [], []
+    rows = {k: [] for k in runs}
+    feats = {k: [] for k in runs}
+    load = [os.getloadavg()[0]]
     for frame, update_s in local_maps(lambda j: seq[j], poses, s, 0, len(seq)):
-        t0 = time.thread_time()
-        pts, world, sizes = segment_local_map(frame.points, esm.segment_params)
-        t1 = time.thread_time()
-        emb = network.embed(w, arch, pts)
-        q = network.quality(w, emb) if len(emb) else np.zeros(0)
-        t2 = time.thread_time()
-        inv = np.linalg.inv(frame.pose)
-        feats.append({"embedding": emb.astype(np.float32), "quality": q.astype(np.float64),
-                      "centroids": world @ inv[:3, :3].T + inv[:3, 3] if len(world)
-                      else np.zeros((0, 3)), "world": world, "sizes": sizes,
-                      "pose": frame.pose.reshape(1, 4, 4)})
-        rows.append([update_s, t1 - t0, t2 - t1])
-    db = esm.prepare(RaggedFeatures.from_list(feats))
-    out = []
-    for i in range(exclude, len(seq), every):
-        loc = esm.localisation(db, i, i - exclude + 1)
-        out.append([*rows[i], *loc.seconds])
-    a = np.asarray(out) * 1e3
-    names = ["local_map_update", "segmentation", "description", "matching", "pose_estimation"]
-    total = a.sum(1)
-    med = np.median(a, 0).round(1).tolist()
-    p90 = np.percentile(a, 90, 0).round(1).tolist()
-    return {"frames": len(a), "median_ms": dict(zip(names, med, strict=True)),
-            "p90_ms": dict(zip(names, p90, strict=True)),
-            "total_median_ms": round(float(np.median(total)), 1),
-            "total_p90_ms": round(float(np.percentile(total, 90)), 1)}
+        for name, esm in runs.items():
+            if frame.frame % DEFAULT_CHUNK_SIZE == 0:
+                esm.begin_local_maps(frame.frame)
+            before = dict(esm.timing)
+            feats[name].append(esm.compute(frame))
+            rows[name].append([update_s, esm.timing["segmentation"] - before["segmentation"],
+                               esm.timing["description"] - before["description"]])
+        if frame.frame % 50 == 0:
+            load.append(os.getloadavg()[0])
+    out: dict = {"frames_timed": 0, "describe": describe, "baseline": baseline}
+    tables = {}
+    for name, esm in runs.items():
+        db = esm.prepare(RaggedFeatures.from_list(feats[name]))
+        timed = []
+        for i in range(exclude, len(seq), every):
+            loc = esm.localisation(db, i, i - exclude + 1)
+            timed.append([*rows[name][i], *loc.seconds])
+        tables[name] = np.asarray(timed) * 1e3
+        out[name] = _summary(tables[name])
+        t = esm.timing
+        n = t["described"] + t["reused"]
+        out[name]["segments_per_frame"] = round(n / max(1, t["scans"]), 1)
+        out[name]["cache_hit_rate"] = round(t["reused"] / n, 3) if n else None
+    out["frames_timed"] = len(tables["cached"])
+    ratio = tables["cached"].sum(1) / tables["baseline"].sum(1)
+    out["total_ratio_median"] = round(float(np.median(ratio)), 3)
+    out["description_ratio_of_medians"] = round(
+        float(np.median(tables["cached"][:, 2]) / np.median(tables["baseline"][:, 2])), 3)
+    same = [np.array_equal(a["ids"], b["ids"]) for a, b in zip(feats["cached"], feats["baseline"],
+                                                              strict=True)]
+    out["ids_equal_frames"] = f"{sum(same)}/{len(same)}"
+    out["load_average_1min"] = {"min": min(load), "max": max(load)}
+    out["omp_num_threads"] = os.environ.get("OMP_NUM_THREADS")
+    out["cpu_affinity"] = sorted(os.sched_getaffinity(0))
+    return out
 
 
 def _sizes_summary(counts, sizes) -> dict:
@@ -77,32 +114,60 @@ def _sizes_summary(counts, sizes) -> dict:
             if len(sizes) else None, "segments": int(len(sizes))}
 
 
-def bench_segments(seq_path: str, exclude: int, kitti: str | None, every: int) -> dict:
+def _local_map_segments(esm, seq, exclude: int, every: int) -> dict:
+    """Segments per local map (frames >= E, every ``every``-th) and their sizes."""
     from lidar_iris_eval.descriptors.esm.local_segments import segment_local_map
-    from lidar_iris_eval.descriptors.esm.segmentation import segment_scan
-    from lidar_iris_eval.io import open_sequence
     from lidar_iris_eval.localmaps import local_maps, odometry_poses
 
-    esm = _esm(exclude)
-    sp = esm.segment_params
-    seq = open_sequence(seq_path)
-    out = {}
-    counts, sizes = [], []
-    for i in range(0, len(seq), every):
-        segs = segment_scan(seq[i], None, sp)  # height rule, as on real scans
-        counts.append(len(segs))
-        sizes.extend(segs.sizes.tolist())
-    out["simulated_single_scan"] = _sizes_summary(counts, sizes)
     s = esm.local_map_settings()
     poses = odometry_poses(seq, s.odometry)
     counts, sizes = [], []
     for frame, _ in local_maps(lambda j: seq[j], poses, s, 0, len(seq)):
         if frame.frame % every or frame.frame < exclude:
             continue
-        _, _, sz = segment_local_map(frame.points, sp)
+        _, _, sz = segment_local_map(frame.points, esm.segment_params)
         counts.append(len(sz))
         sizes.extend(sz.tolist())
-    out["simulated_local_map"] = _sizes_summary(counts, sizes)
+    return _sizes_summary(counts, sizes)
+
+
+def segments_table(results: dict[str, dict], kitti: str | None) -> str:
+    """One Markdown table of :func:`bench_segments` results, real scans first."""
+    lines = ["| | segments per cloud (median, range) | size in voxels (quartiles) |",
+             "|---|---|---|"]
+
+    def row(name: str, r: dict) -> str:
+        if r["per_cloud_median"] is None:
+            return f"| {name} | n/a | n/a |"
+        lo, hi = r["per_cloud_range"]
+        q = " / ".join(f"{v:.0f}" for v in r["size_quartiles"]) if r["size_quartiles"] else "n/a"
+        return f"| {name} | {r['per_cloud_median']:g} ({lo}–{hi}) | {q} |"
+
+    if kitti:
+        first = next(iter(results.values()))
+        lines.append(row(f"real KITTI single scans (`{kitti}`)", first["kitti_single_scan"]))
+    for seq, r in results.items():
+        lines.append(row(f"simulated single scans (`{seq}`)", r["simulated_single_scan"]))
+    for seq, r in results.items():
+        lines.append(row(f"simulated local maps (`{seq}`)", r["simulated_local_map"]))
+    return "\n".join(lines)
+
+
+def bench_segments(seq_path: str, exclude: int, kitti: str | None, every: int) -> dict:
+    """Segment statistics of one sequence (single scans, local maps) and of real scans."""
+    from lidar_iris_eval.descriptors.esm.segmentation import segment_scan
+    from lidar_iris_eval.io import open_sequence
+
+    esm = _esm(exclude)
+    sp = esm.segment_params
+    seq = open_sequence(seq_path)
+    counts, sizes = [], []
+    for i in range(0, len(seq), every):
+        segs = segment_scan(seq[i], None, sp)  # height rule, as on real scans
+        counts.append(len(segs))
+        sizes.extend(segs.sizes.tolist())
+    out = {"simulated_single_scan": _sizes_summary(counts, sizes),
+           "simulated_local_map": _local_map_segments(esm, seq, exclude, every)}
     if kitti:
         from pathlib import Path
 
@@ -120,16 +185,26 @@ def bench_segments(seq_path: str, exclude: int, kitti: str | None, every: int) -
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=["time", "segments"])
-    ap.add_argument("sequence")
+    ap.add_argument("sequence", nargs="+", help="sequence folder(s); time: the first only")
     ap.add_argument("--exclude", type=int, default=30)
     ap.add_argument("--every", type=int, default=5)
     ap.add_argument("--kitti", default=None)
+    ap.add_argument("--describe", default="growth", help="time: the rule timed (esm.describe)")
+    ap.add_argument("--baseline", default="all", help="time: the rule it is compared with")
+    ap.add_argument("--json", action="store_true", help="segments: JSON instead of the table")
     args = ap.parse_args()
     if args.what == "time":
-        result = bench_time(args.sequence, args.exclude, args.every)
+        print(json.dumps(bench_time(args.sequence[0], args.exclude, args.every, args.describe,
+                                    args.baseline), indent=1))
+        return
+    results = {}
+    for k, seq in enumerate(args.sequence):  # real scans once, with the first sequence
+        results[seq] = bench_segments(seq, args.exclude, args.kitti if k == 0 else None,
+                                      args.every)
+    if args.json:
+        print(json.dumps(results, indent=1))
     else:
-        result = bench_segments(args.sequence, args.exclude, args.kitti, args.every)
-    print(json.dumps(result, indent=1))
+        print(segments_table(results, args.kitti))
 
 
 if __name__ == "__main__":

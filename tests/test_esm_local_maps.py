@@ -92,6 +92,7 @@ def test_esm_local_maps_through_liris_eval(tmp_path, capsys):
     assert row["preset"] == "local-maps"
     assert row["odometry"] == "gt" and row["local_map_window"] == 20
     assert row["input_filter"] == "all"
+    assert row["describe_rule"] == "growth" and 0.0 < row["embedding_reuse_rate"] < 1.0
     m = pd.read_csv(out / "protocol1" / "esm" / "matches.csv")
     accepted = m[np.isfinite(m["distance"])]
     # every accepted match: >= 6 consistent segments, a proper rotation, a frame <= i - E

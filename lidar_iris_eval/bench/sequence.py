@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -50,5 +49,7 @@ def _manifest_matches(path: Path, cfg) -> bool:
         stored = json.loads(manifest.read_text())
     except (OSError, ValueError):
         return False
-    expected = json.loads(json.dumps(dataclasses.asdict(cfg)))  # tuples -> lists
+    from lidar_iris_eval.simulate.presets import manifest_config
+
+    expected = json.loads(json.dumps(manifest_config(cfg)))  # tuples -> lists
     return stored.get("config") == expected and stored.get("version") == __version__

@@ -5,6 +5,7 @@ Verbs (``*_cmd.py``) import from here, never from each other.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from lidar_iris_eval.descriptors import Descriptor, available_descriptors, get_d
 from lidar_iris_eval.errors import LirisError, register_flags
 from lidar_iris_eval.extract import DEFAULT_CHUNK_SIZE, DescriptorDB, extract_many
 from lidar_iris_eval.io.sequence import full_scan_hashing
+from lidar_iris_eval.localmaps.odometry import ODOMETRY_SOURCES, check_odometry
 from lidar_iris_eval.sensors import SENSORS
 
 #: library keywords -> the flags that set them, for errors raised below the CLI
@@ -58,18 +60,49 @@ def parse_param_overrides(items: tuple[str, ...], names: list[str]) -> dict[str,
 
 
 def build_descriptors(text: str, preset: str | None, sensor: str | None = None,
-                      params: tuple[str, ...] = ()) -> list[Descriptor]:
-    """Descriptors from ``--descriptor``, ``--preset``, ``--sensor`` and ``--param``.
+                      params: tuple[str, ...] = (), odometry: str = "gt") -> list[Descriptor]:
+    """Descriptors from ``--descriptor``, ``--preset``, ``--sensor``, ``--param`` and
+    ``--odometry``.
 
     Everything is validated (names, presets, parameter keys) before any work.
+    ``odometry`` sets the ``odometry`` parameter of every method that has one
+    (the pose source of its local maps); ``--param NAME.odometry=`` is refused,
+    so ``--odometry`` is the one option that sets it.
     """
     if sensor == "auto":  # resolved per sequence (resolve_sensor) before this point
         raise LirisError("--sensor auto", "works with one sequence; name the sensor preset")
     specs = parse_descriptor_specs(text, preset)
     overrides = parse_param_overrides(params, [name for name, _ in specs])
-    return [
-        get_descriptor(name, preset=p, sensor=sensor, **overrides[name]) for name, p in specs
-    ]
+    for name, values in overrides.items():
+        if "odometry" in values:
+            raise LirisError(f"--param {name}.odometry", "the pose source of local maps is "
+                                                         "set by --odometry gt|kiss-icp")
+    check_odometry(odometry)
+    return [with_odometry(get_descriptor(name, preset=p, sensor=sensor, **overrides[name]),
+                          odometry) for name, p in specs]
+
+
+def with_odometry(descriptor: Descriptor, odometry: str) -> Descriptor:
+    """``descriptor`` with its ``odometry`` parameter set (a method without one: as is)."""
+    params = getattr(descriptor, "params", None)
+    if not dataclasses.is_dataclass(params) or "odometry" not in {
+            f.name for f in dataclasses.fields(params)}:
+        return descriptor
+    if params.odometry == odometry:
+        return descriptor
+    return type(descriptor)(dataclasses.replace(params, odometry=odometry), descriptor.preset)
+
+
+def odometry_option(func):
+    """``--odometry gt|kiss-icp`` for ``liris extract`` (``liris eval`` also takes FILE)."""
+    return click.option(
+        "--odometry", "odometry", type=click.Choice(ODOMETRY_SOURCES), default="gt",
+        show_default=True, help=ODOMETRY_HELP)(func)
+
+
+ODOMETRY_HELP = ("Pose source of the local maps of methods that read them (esm): gt, the "
+                 "sequence's poses (an oracle), or kiss-icp, estimated from the scans alone "
+                 "(the 'odometry' extra). Methods without local maps ignore it.")
 
 
 def verify_scans_option(func):

@@ -12,7 +12,11 @@ import click
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
 from lidar_iris_eval.cli.descriptor_options import build_descriptors, descriptor_options, open_input
-from lidar_iris_eval.cli.loop_options import loop_pose_options, read_odometry
+from lidar_iris_eval.cli.loop_options import (
+    check_odometry_file,
+    loop_pose_options,
+    read_odometry,
+)
 from lidar_iris_eval.cli.options import current_convention, ground_truth_options
 from lidar_iris_eval.cli.output import echo_json
 from lidar_iris_eval.cli.workflow import (
@@ -95,7 +99,7 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
             descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
-            loop_settings, odometry_path, seeds):
+            loop_settings, odometry, odometry_path, seeds):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
@@ -105,7 +109,11 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
     if workers < 1:
         raise LirisError(f"--workers {workers}", "must be at least 1")
     settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
-    if query_path is not None or database_path is not None or align_path is not None:
+    within = query_path is None and database_path is None and align_path is None
+    if odometry != "gt" and not within:
+        raise LirisError(f"--odometry {odometry}", "applies to within-sequence runs (a "
+                                                  "SEQUENCE or a plan of sequences)")
+    if not within:
         from lidar_iris_eval.cli.sessions_eval import evaluate_sessions_cli
 
         evaluate_sessions_cli(sequence, query_path, database_path, align_path, protocols,
@@ -117,6 +125,9 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         from lidar_iris_eval.cli.sessions_plan import is_sessions_plan, run_sessions_plan
 
         if is_sessions_plan(plan):  # query/database pairs
+            if odometry != "gt":
+                raise LirisError(f"--odometry {odometry}", "applies to within-sequence runs "
+                                                          "(a SEQUENCE or a plan of sequences)")
             if protocols:
                 raise LirisError("--protocol", "does not apply to a plan of query/database "
                                                "pairs")
@@ -129,12 +140,13 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
                              "apply to a single sequence only")
         _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
                        cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
-                       as_json, reader_options, scheduler)
+                       as_json, reader_options, scheduler, odometry)
         return
     sequence = sequence[0]
     sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
-    descriptors = build_descriptors(descriptor_text, preset, sensor, params) \
+    descriptors = build_descriptors(descriptor_text, preset, sensor, params, odometry) \
         if descriptor_text else []
+    check_odometry_file(odometry_path, descriptors)
     if pairs_text is not None:
         from lidar_iris_eval.cli.pairs_eval import evaluate_pairs_cli
 
@@ -144,7 +156,8 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         with open_executor(check_scheduler(scheduler), workers) as executor:
             evaluate_pairs_cli(seq, descriptors, pairs_text, protocols, cache_dir, workers,
                                quiet, out, overwrite, as_json, executor,
-                               {**config_extra(conv), "sensor": sensor})
+                               {**config_extra(conv), "sensor": sensor,
+                                "odometry": odometry})
         return
     check_request(descriptors, protocols, settings)
     if export_path is not None:
@@ -159,7 +172,7 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
     check_request(descriptors, protocols, settings)
     for d in descriptors:
         d.check_inputs(seq)
-    odometry = read_odometry(odometry_path, seq) if odometry_path is not None else None
+    vertices = read_odometry(odometry_path, seq) if odometry_path is not None else None
     if out is None:
         out = default_run_dir(seq.name)
     check_run_dir(out, overwrite)
@@ -180,10 +193,15 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
             run = evaluate_seeds(run_once, descriptors, seeds)
         engine_info = (executor.describe() if executor.distributes_blocks
                        else {"scheduler": scheduler})
-    extra = {**config_extra(conv), "engine": engine_info,
+    extra = {**config_extra(conv), "engine": engine_info, "odometry": odometry,
+             **({"odometry_file": str(odometry_path)} if odometry_path is not None else {}),
              **({"seeds": list(seeds)} if seeds is not None else {})}
     write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options, **extra)
-    exported = export_loops(run, export_path, odometry) if export_path is not None else {}
+    if export_path is not None and odometry != "gt":  # the .g2o vertices: the same odometry
+        from lidar_iris_eval.localmaps.odometry import estimate_odometry
+
+        vertices = estimate_odometry(seq, odometry, progress=not quiet).poses
+    exported = export_loops(run, export_path, vertices) if export_path is not None else {}
     if as_json:
         echo_json(json_ready({**run.header(run.config(sensor=sensor,
                                                       reader_options=reader_options, **extra)),
@@ -219,7 +237,7 @@ def print_loop_poses(run, loop_settings) -> None:
 
 def _evaluate_many(sequences, plan, protocols, descriptor_text, preset, params, sensor,
                    cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
-                   as_json, reader_options, scheduler) -> None:
+                   as_json, reader_options, scheduler, odometry: str = "gt") -> None:
     """SEQUENCE... or --plan: :func:`lidar_iris_eval.cli.eval_many.evaluate_many`."""
     from lidar_iris_eval.cli.eval_many import evaluate_many
     from lidar_iris_eval.runs.plan import read_plan, runs_from_sequences
@@ -235,7 +253,7 @@ def _evaluate_many(sequences, plan, protocols, descriptor_text, preset, params, 
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
     evaluate_many(runs, settings=settings, conv=conv, cache=cache, workers=workers, quiet=quiet,
                   preset=preset, sensor=sensor, params=params, reader_options=reader_options,
-                  scheduler=scheduler, out=out, overwrite=overwrite)
+                  scheduler=scheduler, out=out, overwrite=overwrite, odometry=odometry)
 
 
 __all__ = ["command", "loop_export_paths"]

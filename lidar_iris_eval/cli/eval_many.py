@@ -32,7 +32,7 @@ from lidar_iris_eval.runs.plan import (
 
 def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int, quiet: bool,
                   preset, sensor, params, reader_options: dict, scheduler: str,
-                  out: Path | None, overwrite: bool) -> Path:
+                  out: Path | None, overwrite: bool, odometry: str = "gt") -> Path:
     """Evaluate every planned run under one scheduler; returns the parent folder."""
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import extract_all
@@ -46,7 +46,7 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
         if not run.sequence.exists():
             raise LirisError(str(run.sequence), "no such sequence")
         seq = open_input(run.sequence, reader_options)
-        descriptors = build_descriptors(run.descriptors, preset, sensor, params)
+        descriptors = build_descriptors(run.descriptors, preset, sensor, params, odometry)
         protocols = check_request(descriptors, run.protocols, settings)
         for d in descriptors:
             d.check_inputs(seq)
@@ -72,7 +72,7 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
                                   dbs=extract_all(seq, descriptors, cache, workers, quiet,
                                                   executor))
                 write_run(result, tmp / name, sensor=sensor, reader_options=reader_options,
-                          engine=engine_info)
+                          engine=engine_info, odometry=odometry)
                 per_run.append((name, result.rows))
         rows = summary_rows(per_run)
         write_text_atomic(tmp / "summary.csv", summary_csv(rows))

@@ -9,6 +9,7 @@ import click
 from lidar_iris_eval.cli.descriptor_options import (
     build_descriptors,
     descriptor_options,
+    odometry_option,
     open_input,
     run_extraction,
 )
@@ -21,6 +22,7 @@ from lidar_iris_eval.sensors import resolve_sensor
 @click.command("extract")
 @click.argument("sequence", type=click.Path(path_type=Path))
 @descriptor_options
+@odometry_option
 @click.option("--chunk-size", type=int, default=DEFAULT_CHUNK_SIZE, show_default=True,
               help="Scans per chunk (the unit saved as it goes, so a killed run resumes).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
@@ -28,7 +30,7 @@ from lidar_iris_eval.sensors import resolve_sensor
               help="Also write each (N, D) descriptor array as DIR/<descriptor>.npy (the "
                    "format liris eval --external reads).")
 def command(sequence, descriptor_text, preset, params, sensor, cache_dir, workers, quiet,
-            chunk_size, as_json, reader_options, npy_dir):
+            chunk_size, as_json, reader_options, npy_dir, odometry):
     """Compute descriptors of every scan of SEQUENCE and store them in the cache.
 
     A second run with the same scans, descriptor parameters and liris version
@@ -39,7 +41,7 @@ def command(sequence, descriptor_text, preset, params, sensor, cache_dir, worker
     if chunk_size < 1:
         raise LirisError(f"--chunk-size {chunk_size}", "must be at least 1")
     sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
-    descriptors = build_descriptors(descriptor_text, preset, sensor, params)
+    descriptors = build_descriptors(descriptor_text, preset, sensor, params, odometry)
     seq = open_input(sequence, reader_options)
     for d in descriptors:  # every method's inputs before any work (e.g. labels/)
         d.check_inputs(seq)

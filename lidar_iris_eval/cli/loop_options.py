@@ -3,7 +3,8 @@
 :func:`loop_pose_options` adds ``--refine``, ``--gt-pose``, ``--rr-thresholds``,
 ``--min-inlier-ratio``, ``--max-rmse`` and ``--odometry``; the command body
 gets them back as one :class:`~lidar_iris_eval.evaluation.loop_poses.LoopPoseSettings`
-(``loop_settings``) and an odometry array or None (``odometry``).
+(``loop_settings``), the local maps' pose source (``odometry``: gt or kiss-icp)
+and a pose file or None (``odometry_path``).
 """
 
 from __future__ import annotations
@@ -41,6 +42,36 @@ def read_odometry(path: Path, sequence) -> np.ndarray:
     return poses
 
 
+def parse_odometry(text: str) -> tuple[str, Path | None]:
+    """``--odometry`` to ``(pose source of local maps, pose file or None)``.
+
+    ``gt`` / ``kiss-icp`` name the source (kiss-icp checked to be installed);
+    anything else must be an existing pose file, which sets only the .g2o
+    vertices (its local-map source stays ``gt``; :func:`check_odometry_file`
+    refuses it for methods that read local maps).
+    """
+    from lidar_iris_eval.localmaps.odometry import ODOMETRY_SOURCES, check_odometry
+
+    if text in ODOMETRY_SOURCES:
+        return check_odometry(text), None
+    path = Path(text)
+    if not path.is_file():
+        raise LirisError(f"--odometry {text}", f"neither {' nor '.join(ODOMETRY_SOURCES)} "
+                                               "nor an existing pose file")
+    return "gt", path
+
+
+def check_odometry_file(path: Path | None, descriptors) -> None:
+    """A pose file as ``--odometry`` with a method that reads local maps: one error line."""
+    if path is None:
+        return
+    reads = [d.name for d in descriptors if "local_map" in getattr(d, "inputs", ())]
+    if reads:
+        raise LirisError(f"--odometry {path}", f"{', '.join(reads)} build local maps from "
+                         "gt or kiss-icp poses; a pose file sets only the .g2o vertices of "
+                         "methods without local maps")
+
+
 def loop_pose_options(func):
     """The issue 23 options (see module doc); apply below ``@click.command``."""
 
@@ -58,16 +89,19 @@ def loop_pose_options(func):
                   help="With --refine: reject a match whose registration inlier ratio is lower.")
     @click.option("--max-rmse", "max_rmse_m", type=float, default=None,
                   help="With --refine: reject a match whose registration RMSE (m) is higher.")
-    @click.option("--odometry", "odometry_path", type=click.Path(path_type=Path, dir_okay=False),
-                  default=None,
-                  help="Odometry poses (KITTI/TUM, LiDAR frame) for the .g2o vertices "
-                       "[default: the sequence's poses].")
+    @click.option("--odometry", "odometry_text", default="gt", show_default=True,
+                  metavar="gt|kiss-icp|FILE",
+                  help="The run's odometry. gt (the sequence's poses, an oracle) or kiss-icp "
+                       "(estimated from the scans alone; the 'odometry' extra): the pose "
+                       "source of the local maps of methods that read them (esm; others "
+                       "ignore it) and the .g2o vertices. FILE (KITTI/TUM rows, LiDAR frame): "
+                       ".g2o vertices only, for methods without local maps.")
     @click.option("--seeds", "seeds_text", default=None, metavar="S1,S2,...",
                   help="Rerun the stochastic stages (RANSAC, PROSAC, ESF's sampling) once per "
                        "seed; metrics.json, liris show and the PR figure report mean and range.")
     @functools.wraps(func)
     def wrapper(*args, refine, gt_pose, rr_thresholds, min_inlier_ratio, max_rmse_m,
-                odometry_path, seeds_text, **kwargs):
+                odometry_text, seeds_text, **kwargs):
         from lidar_iris_eval.evaluation.loop_poses import LoopPoseSettings
         from lidar_iris_eval.evaluation.seeds import parse_seeds
 
@@ -79,7 +113,7 @@ def loop_pose_options(func):
             from lidar_iris_eval.matching.registration import check_available
 
             check_available()
-        kwargs["odometry_path"] = odometry_path
+        kwargs["odometry"], kwargs["odometry_path"] = parse_odometry(odometry_text)
         kwargs["seeds"] = parse_seeds(seeds_text) if seeds_text is not None else None
         return func(*args, **kwargs)
 

@@ -166,8 +166,16 @@ class Evaluation:
                               "of its kernels (compilation excluded)",
                 **convention_header(config.get("convention")),
                 **self.loop_settings.conventions(),
+                **({"odometry": config["odometry"], "odometry_rule": ODOMETRY_RULE}
+                   if config.get("odometry") else {}),
             },
         }
+
+
+#: what ``--odometry`` means, for the metrics.json header
+ODOMETRY_RULE = ("pose source of the local maps of methods that read them: gt = the sequence's "
+                 "poses (an oracle), kiss-icp = estimated from the scans alone; the ground "
+                 "truth of the protocols and the pose errors always use the sequence's poses")
 
 
 def bind_exclusion(descriptors, exclude: int) -> list:
@@ -375,8 +383,20 @@ def _pose_kind(p1: Protocol1Result) -> str:
     return "yaw" if rot.any() else "none"
 
 
+def _odometry_ms(db, source: str) -> float | None:
+    """Mean CPU ms per scan of the odometry that placed the local maps (None: ``gt``, an
+    oracle that costs nothing, or features without the ``odometry_s`` key)."""
+    values = getattr(getattr(db, "descriptors", None), "values", None)
+    if source == "gt" or values is None or "odometry_s" not in values:
+        return None
+    seconds = np.asarray(values["odometry_s"], dtype=np.float64)
+    return float(seconds.mean() * 1e3) if len(seconds) else None
+
+
 def _rows(desc, db, p1, p2, settings) -> list[dict]:
     base = {"descriptor": desc.name, "preset": desc.preset, **desc.run_info()}
+    if "odometry" in base:  # a local-map method: what its odometry cost per scan
+        base["odometry_ms_per_scan"] = _odometry_ms(db, base["odometry"])
     qualifiers = list(getattr(db, "warnings", ()) or ())
     if qualifiers:  # a warning that qualifies the numbers travels with them (runs/schema.py)
         base["warnings"] = qualifiers

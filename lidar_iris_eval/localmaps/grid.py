@@ -61,6 +61,9 @@ class LocalMapFrame:
     counts : ``(M,)`` points per voxel.
     last_seen : ``(M,)`` the latest frame whose scan fed each voxel.
     frames : the frames whose scans the map holds, oldest first.
+    keys : ``(M,)`` int64 voxel keys (:func:`encode` of the integer voxel index), sorted;
+        the identity of a voxel across frames (segment tracking uses it); ``None``
+        when not given.
     """
 
     frame: int
@@ -69,6 +72,7 @@ class LocalMapFrame:
     counts: np.ndarray
     last_seen: np.ndarray
     frames: tuple[int, ...]
+    keys: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -197,4 +201,4 @@ class LocalMap:
         """The current map as a :class:`LocalMapFrame` of ``frame``."""
         g = self.grid
         return LocalMapFrame(int(frame), np.asarray(pose, dtype=np.float64), g.centroids(),
-                             g.counts.copy(), g.last.copy(), g.frames())
+                             g.counts.copy(), g.last.copy(), g.frames(), g.keys.copy())

@@ -58,6 +58,8 @@ RUN_CONFIG_SCHEMA: dict[str, Any] = {
                "workers": (int, None)},
     "loop_poses": AnyMapping,  # --refine, --gt-pose, RR thresholds, acceptance (issue 23)
     "seeds": [int],
+    "odometry": OneOf("gt", "kiss-icp"),  # --odometry: the local maps' pose source (issue 28)
+    "odometry_file": str,  # --odometry FILE: the .g2o vertices
 }
 
 
@@ -120,7 +122,15 @@ def config_defaults(config: dict[str, Any]) -> dict[str, Any]:
     if builtin:
         out["descriptor_text"] = ",".join(f"{d['name']}:{d['preset']}" for d in builtin)
         out["params"] = [f"{d['name']}.{key}={_yaml_value(value)}" for d in builtin
-                         for key, value in (d.get("params") or {}).items()]
+                         for key, value in (d.get("params") or {}).items()
+                         if key != "odometry"]  # set by --odometry (below)
+        sources = {(d.get("params") or {}).get("odometry") for d in builtin} - {None, "gt"}
+        if sources and not config.get("odometry"):  # a run from before --odometry
+            out["odometry_text"] = sources.pop()
+    if config.get("odometry_file"):
+        out["odometry_text"] = config["odometry_file"]
+    elif config.get("odometry"):
+        out["odometry_text"] = config["odometry"]
     if external:
         out["externals"] = [f"{d['name']}={d['params']['path']}" for d in external]
         metrics = {d["params"].get("metric") for d in external} - {None}

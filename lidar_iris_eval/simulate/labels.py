@@ -14,6 +14,7 @@ ROAD = 40
 SIDEWALK = 48
 BUILDING = 50
 FENCE = 51
+OTHER_STRUCTURE = 52  # street furniture; only in the dense world style
 VEGETATION = 70
 TRUNK = 71
 TERRAIN = 72
@@ -35,6 +36,9 @@ CLASS_NAMES: dict[int, str] = {
     TRAFFIC_SIGN: "traffic-sign",
     MOVING_CAR: "moving-car",
 }
+#: classes only the dense world style uses (kept out of :data:`CLASS_NAMES`, which every
+#: manifest lists, so the manifests of the older presets stay byte-identical)
+DENSE_CLASS_NAMES: dict[int, str] = {**CLASS_NAMES, OTHER_STRUCTURE: "other-structure"}
 
 #: class id -> base reflectivity in [0, 1].
 REFLECTIVITY: dict[int, float] = {
@@ -43,6 +47,7 @@ REFLECTIVITY: dict[int, float] = {
     SIDEWALK: 0.30,
     BUILDING: 0.35,
     FENCE: 0.30,
+    OTHER_STRUCTURE: 0.35,
     VEGETATION: 0.45,
     TRUNK: 0.35,
     TERRAIN: 0.40,

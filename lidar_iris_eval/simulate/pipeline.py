@@ -23,7 +23,7 @@ from lidar_iris_eval import __version__
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 from lidar_iris_eval.simulate import labels
-from lidar_iris_eval.simulate.presets import SimConfig, resolve_config
+from lidar_iris_eval.simulate.presets import SimConfig, manifest_config, resolve_config
 from lidar_iris_eval.simulate.raycast import Primitives
 from lidar_iris_eval.simulate.sensors import SensorModel, get_sensor, simulate_scan
 from lidar_iris_eval.simulate.traffic import Traffic, make_traffic
@@ -38,6 +38,7 @@ from lidar_iris_eval.simulate.trajectories import (
     trajectory_from_file,
 )
 from lidar_iris_eval.simulate.world import World, WorldParams, build_world
+from lidar_iris_eval.simulate.world import world_params as style_params
 from lidar_iris_eval.simulate.writer import (
     check_out_dir,
     default_tr,
@@ -114,9 +115,10 @@ def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None, sess
                    sensor_name: str | None = None) -> Scenario:
     """Generate the world and the trajectory described by ``cfg``.
 
-    ``world_params`` replaces the default :class:`WorldParams` (only in-memory
-    training data of learned methods does this, e.g. for ``shape_variety``;
-    sequences written by ``liris simulate`` always use the defaults).
+    ``world_params`` replaces the :class:`WorldParams` of ``cfg.world_style``
+    (only in-memory training data of learned methods does this, e.g. for
+    ``shape_variety``; start from :func:`~lidar_iris_eval.simulate.world.world_params`
+    to keep a style; sequences written by ``liris simulate`` use the style's).
 
     ``session`` > 0 drives the same world again on another day
     (:mod:`~lidar_iris_eval.simulate.sessions`): the same streets, buildings,
@@ -124,7 +126,7 @@ def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None, sess
     (lane offsets, speed and tilt noise), other moving cars, optionally
     another sensor (``sensor_name``). Session 0 is exactly the preset's sequence.
     """
-    wp = world_params if world_params is not None else WorldParams()
+    wp = world_params if world_params is not None else style_params(cfg.world_style)
     sensor = get_sensor(sensor_name or cfg.sensor, cfg.azimuth_steps)
     # the world does not depend on the session's sensor (trajectory worlds take the
     # ground heights under the first session's sensor)
@@ -279,16 +281,19 @@ def write_scenario(
         "version": __version__,
         "preset": preset,
         "seed": cfg.seed,
-        "config": dataclasses.asdict(cfg),
+        "config": manifest_config(cfg),
         "sensor": dataclasses.asdict(scen.sensor),
         "frames": n,
         "points": total_points,
         "revisit_queries_E30_4m": int(len(revisits)),
         "revisit_queries_E30_4m_frame": "lidar",
         "revisit_queries_E30_4m_camera_frame": int(len(revisits_camera)),
-        "classes": {str(k): v for k, v in labels.CLASS_NAMES.items()},
+        "classes": {str(k): v for k, v in (labels.CLASS_NAMES if cfg.world_style == "default"
+                                           else labels.DENSE_CLASS_NAMES).items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
+    if cfg.world_style != "default":  # the style's object densities, for the record
+        manifest["world_params"] = dataclasses.asdict(style_params(cfg.world_style))
     if extra:
         manifest.update(extra)
     write_metadata(work, scen.poses, scen.tr, manifest, origin)

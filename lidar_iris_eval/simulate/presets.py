@@ -3,8 +3,9 @@
 A preset is a partial :class:`SimConfig`; options given by the caller override
 its values. The ``tiny-*`` presets (about 200 frames, reduced azimuth
 resolution) are for tests and CI, ``small-mixed`` is the CI regression
-sequence (both same- and reverse-direction revisits), ``kitti-scale`` matches
-KITTI 00's 4541 frames for benchmarks.
+sequence (both same- and reverse-direction revisits), ``urban-dense`` drives
+small-mixed's route through a dense urban world (for ESM's segment-based
+evaluation), ``kitti-scale`` matches KITTI 00's 4541 frames for benchmarks.
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ class SimConfig:
     lateral_max: float = 1.5  # lane offset range right of the centre line
     trajectory: str | None = None  # KITTI pose file (camera frame) to follow
     calib: str | None = None  # calib.txt with the Tr that goes with it
+    #: which objects line the streets: a name from ``simulate.world.WORLD_STYLES``
+    #: ("default": today's world; "dense": :data:`~lidar_iris_eval.simulate.world.DENSE`).
+    #: Left out of ``manifest.json`` when "default", so older sequences stay byte-identical.
+    world_style: str = "default"
 
 
 PRESETS: dict[str, dict] = {
@@ -50,6 +55,13 @@ PRESETS: dict[str, dict] = {
                         block_size=(30.0, 38.0), n_moving_cars=2),
     "kitti-scale": dict(frames=4541, route="mixed", azimuth_steps=1024, seed=31,
                         blocks=(7, 5), block_size=(55.0, 100.0)),
+    # small-mixed's streets, route and traffic (same seed: the same street grid and the
+    # same drive, 203 revisit queries at E = 30) in a dense urban world: near-continuous
+    # façades with gaps, porches and walls, long runs of parked cars, street trees,
+    # bushes, poles (simulate.world.DENSE, chosen so that single-scan segment statistics
+    # come near real KITTI 00's; docs/esm.md "Segments")
+    "urban-dense": dict(frames=400, route="mixed", azimuth_steps=720, seed=21,
+                        block_size=(30.0, 38.0), n_moving_cars=2, world_style="dense"),
 }
 
 
@@ -107,3 +119,18 @@ def _check(cfg: SimConfig) -> None:
         raise LirisError(None, f"lateral_max must be within 0..3 m, got {cfg.lateral_max}")
     if cfg.calib is not None and cfg.trajectory is None:
         raise LirisError("--calib", "only used together with --trajectory")
+    from lidar_iris_eval.simulate.world import WORLD_STYLES
+
+    if cfg.world_style not in WORLD_STYLES:
+        raise LirisError(None, f"unknown world style {cfg.world_style!r}; choose from "
+                               f"{', '.join(WORLD_STYLES)}")
+
+
+def manifest_config(cfg: SimConfig) -> dict:
+    """``cfg`` as ``manifest.json`` records it: its fields, without ``world_style`` when it
+    is "default" (the key is newer than the pinned sequences, whose bytes must not change).
+    """
+    out = dataclasses.asdict(cfg)
+    if out["world_style"] == "default":
+        del out["world_style"]
+    return out

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.simulate import labels
 from lidar_iris_eval.simulate.ground import (
     REGION_ROAD,
@@ -50,12 +51,84 @@ class WorldParams:
     tree_spacing: tuple[float, float] = (6.0, 30.0)
     light_spacing: tuple[float, float] = (18.0, 45.0)
     parked_run: float = 0.45
+    # -- the ranges below were constants; their defaults are those constants, so a world
+    # -- built with them draws the same random numbers (every preset stays byte-identical)
+    #: building frontage along the street, depth, and setback behind the sidewalk (m)
+    building_front: tuple[float, float] = (8.0, 32.0)
+    building_depth: tuple[float, float] = (8.0, 24.0)
+    setback: tuple[float, float] = (1.0, 9.0)
+    #: probability that the next lot starts right after a building, else a gap drawn from
+    #: ``building_gap`` (m)
+    no_gap: float = 0.3
+    building_gap: tuple[float, float] = (2.0, 14.0)
+    #: a hedge or fence in front of a building needs at least this setback (m)
+    hedge_setback: float = 2.5
+    #: probability that a street tree keeps ``tree_spacing`` (else three times it)
+    tree_regular: float = 0.7
+    #: fraction of the kerb poles that are signs (the rest are street lights)
+    sign_fraction: float = 0.3
+    #: parked cars per run (integers, high end excluded), spacing within a run and gaps
+    #: between runs (m)
+    parked_run_cars: tuple[int, int] = (1, 7)
+    parked_spacing: tuple[float, float] = (5.0, 8.0)
+    parked_gap: tuple[float, float] = (10.0, 50.0)
+    # -- additions of the dense world; off by default (no random number is drawn for them)
+    #: bushes on the strip between sidewalk and façades: spacing range (m), None: none
+    bush_spacing: tuple[float, float] | None = None
+    #: probability that the gap between two buildings gets a wall or fence across its front
+    gap_fence: float = 0.0
+    #: probability that a building gets an entrance porch (steps and canopy, a small box)
+    #: in front of its façade
+    porch: float = 0.0
+    #: street furniture on the sidewalk (advertising columns, waste containers, utility
+    #: cabinets, bus shelters): spacing range (m), None: none
+    furniture_spacing: tuple[float, float] | None = None
+    #: place the buildings of every street before any street object (trees, cars, ...), so
+    #: that the objects of one street do not take the lots of the next; off: street by
+    #: street, as the older presets were built
+    buildings_first: bool = False
+    #: street-tree trunk height range (m), up to the crown
+    trunk_height: tuple[float, float] = (1.5, 3.5)
     #: opt-in (off for every preset and sequence): parked cars drawn from five body types
     #: (hatchback, sedan, estate, SUV, van) and trees with multi-lobed or conifer crowns.
     #: Off, no extra random number is drawn, so the default worlds stay byte-identical.
     #: Training data of learned segment descriptors turns it on (objects of one class must
     #: differ in shape for the same-object task to be learnable).
     shape_variety: bool = False
+
+
+#: the dense urban world (preset ``urban-dense``): near-continuous façades (narrower
+#: frontages, small setbacks and gaps, porches, walls across gaps), long runs of parked
+#: cars, more street trees and poles, bushes. The values were chosen so that segments per
+#: simulated HDL-64E scan (720 azimuth steps) and their sizes come near those of real
+#: KITTI 00 scans (docs/esm.md "Segments"); no method parameter was changed for it.
+DENSE = WorldParams(
+    # narrower street (carriageway with parking lanes) and sidewalk
+    road_half_width=5.5, sidewalk_width=2.5,
+    # row houses: narrow, shallow (the blocks of small-mixed are 30-38 m), close to the
+    # sidewalk, often wall to wall; porches; walls or fences across most gaps
+    building_front=(5.0, 12.0), building_depth=(4.0, 7.0), setback=(0.3, 2.0),
+    no_gap=0.5, building_gap=(1.5, 5.0), empty_lot=0.0, hedge=0.6, hedge_setback=1.5,
+    porch=0.4, gap_fence=0.6, buildings_first=True,
+    # street trees every 5-12 m with lower crowns, bushes every 2-6 m, furniture
+    tree_spacing=(5.0, 12.0), tree_regular=1.0, trunk_height=(1.0, 2.5),
+    bush_spacing=(2.0, 6.0), furniture_spacing=(8.0, 20.0),
+    light_spacing=(12.0, 25.0), sign_fraction=0.4,
+    # kerbs nearly full of parked cars of five body types
+    parked_run=0.95, parked_run_cars=(4, 12), parked_spacing=(5.2, 7.5),
+    parked_gap=(1.0, 6.0), shape_variety=True,
+)
+
+#: named worlds (``SimConfig.world_style``): "default" is every older preset's
+WORLD_STYLES: dict[str, WorldParams] = {"default": WorldParams(), "dense": DENSE}
+
+
+def world_params(style: str) -> WorldParams:
+    """The :class:`WorldParams` of a world style (see :data:`WORLD_STYLES`)."""
+    if style not in WORLD_STYLES:
+        raise LirisError(None, f"unknown world style {style!r}; choose from "
+                               f"{', '.join(WORLD_STYLES)}")
+    return WORLD_STYLES[style]
 
 
 @dataclass(frozen=True)
@@ -248,13 +321,24 @@ class _Placer:
                 (BOX, (cx, cy, z0 + h + 1 + rh / 2), (rx, ry, rh / 2), yaw, labels.BUILDING, 0,
                  refl)
             )
+        if self.p.porch > 0 and rng.random() < self.p.porch:  # an entrance porch
+            pw, pd = rng.uniform(1.5, 3.0), rng.uniform(0.8, 1.8)
+            ou = rng.uniform(-1, 1) * max(hx - pw, 0.0)
+            ov = -hy - pd / 2  # in front of the façade (towards the road)
+            pcx, pcy = cx + c * ou - s * ov, cy + s * ou + c * ov
+            if self.free(pcx, pcy, pw / 2, pd / 2, yaw, self.p.road_half_width
+                         + self.p.sidewalk_width + 0.2, pad=0.0):
+                ph = rng.uniform(2.4, 3.2)
+                self.rows.append((BOX, (pcx, pcy, z0 + 1 + ph / 2), (pw / 2, pd / 2, ph / 2),
+                                  yaw, labels.BUILDING, 0, refl))
+                self.claim(pcx, pcy, pw / 2, pd / 2, yaw)
         self.claim(cx, cy, hx, hy, yaw)
 
     def tree(self, x, y) -> None:
         self._new_object()
         rng = self.rng
         z0 = self.base(x, y)
-        trunk_h = rng.uniform(1.5, 3.5)
+        trunk_h = rng.uniform(*self.p.trunk_height)
         tr = rng.uniform(0.12, 0.35)
         rh = rng.uniform(1.5, 4.0)
         rv = rh * rng.uniform(0.8, 1.5)
@@ -266,6 +350,40 @@ class _Placer:
             self.rows.append((ELLIPSOID, (x, y, z0 + trunk_h + 0.8 * rv), (rh, rh, rv), 0.0,
                               labels.VEGETATION, 0, 0.45))
         self.claim(x, y, 0.6, 0.6, 0.0)
+
+    def bush(self, x, y, r, h) -> None:
+        """A bush: one ellipsoid of radius ``r`` and half height ``h``, sunk a little."""
+        self._new_object()
+        rng = self.rng
+        rx, ry = r * rng.uniform(0.7, 1.0), r * rng.uniform(0.7, 1.0)
+        self.rows.append((ELLIPSOID, (x, y, self.base(x, y) + 0.7 * h), (rx, ry, h), 0.0,
+                          labels.VEGETATION, 0, 0.45))
+        self.claim(x, y, r, r, 0.0)
+
+    def furniture(self, x, y, yaw) -> None:
+        """A piece of street furniture: an advertising column, a waste container, a
+        utility cabinet or a bus shelter (a box open to the road is one thin back wall)."""
+        self._new_object()
+        rng = self.rng
+        z0 = self.base(x, y)
+        kind = int(rng.integers(4))
+        refl = rng.uniform(0.2, 0.6)
+        if kind == 0:  # advertising column
+            r, h = rng.uniform(0.5, 0.7), rng.uniform(2.5, 3.5)
+            self.rows.append((CYLINDER, (x, y, z0 + h / 2 - 0.1), (r, r, h / 2 + 0.1), 0.0,
+                              labels.OTHER_STRUCTURE, 0, refl))
+            self.claim(x, y, r, r, 0.0)
+            return
+        if kind == 1:  # waste container
+            hx, hy, h = rng.uniform(0.6, 0.9), rng.uniform(0.45, 0.6), rng.uniform(1.2, 1.5)
+        elif kind == 2:  # utility cabinet
+            hx, hy, h = rng.uniform(0.4, 0.8), rng.uniform(0.2, 0.35), rng.uniform(1.2, 1.6)
+        else:  # bus shelter: back wall and roof as one slab
+            hx, hy, h = rng.uniform(1.5, 2.5), rng.uniform(0.05, 0.1), rng.uniform(2.3, 2.6)
+        a = yaw + rng.uniform(-0.05, 0.05)
+        self.rows.append((BOX, (x, y, z0 + h / 2 - 0.1), (hx, hy, h / 2 + 0.1), a,
+                          labels.OTHER_STRUCTURE, 0, refl))
+        self.claim(x, y, hx, hy, a)
 
     def pole(self, x, y, yaw, sign: bool) -> None:
         self._new_object()
@@ -379,15 +497,12 @@ def crown_rows(rng, x, y, z_top_trunk, rh, rv) -> list[tuple]:
     return rows
 
 
-def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
-    """Place objects along one side (+1 left, -1 right) of a centre line."""
-    rng, p = placer.rng, placer.p
+def _side_frame(line: np.ndarray, side: int):
+    """``(frame, total)``: the street frame at arc length s along one side (+1 left, -1
+    right) of a centre line (point, direction, outward normal, heading), and its length."""
     seg = np.diff(line, axis=0)
     seglen = np.linalg.norm(seg, axis=1)
     s_cum = np.concatenate([[0.0], np.cumsum(seglen)])
-    total = s_cum[-1]
-    if total < 5:
-        return
 
     def frame(s):
         k = int(np.clip(np.searchsorted(s_cum, s, side="right") - 1, 0, len(seg) - 1))
@@ -396,13 +511,34 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
         n = np.array([-u[1], u[0]]) * side
         return pt, u, n, np.arctan2(u[1], u[0])
 
+    return frame, float(s_cum[-1])
+
+
+def _walk_side(placer: _Placer, line: np.ndarray, side: int, part: str = "all") -> None:
+    """Place objects along one side (+1 left, -1 right) of a centre line.
+
+    ``part``: "all", or only the "buildings" (with their yards, hedges and walls) or only
+    the "street" (trees, poles, parked cars and the rest) for
+    :attr:`WorldParams.buildings_first`.
+    """
+    frame, total = _side_frame(line, side)
+    if total < 5:
+        return
+    if part != "street":
+        _walk_buildings(placer, frame, total)
+    if part != "buildings":
+        _walk_street(placer, frame, total, side)
+
+
+def _walk_buildings(placer: _Placer, frame, total: float) -> None:
+    """Buildings, yards, hedges and walls along one side of a street."""
+    rng, p = placer.rng, placer.p
     w, sw = p.road_half_width, p.sidewalk_width
-    # buildings, yards, hedges
     s = rng.uniform(0, 10)
     while s < total:
-        front = rng.uniform(8.0, 32.0)
-        depth = rng.uniform(8.0, 24.0)
-        setback = rng.uniform(1.0, 9.0)
+        front = rng.uniform(*p.building_front)
+        depth = rng.uniform(*p.building_depth)
+        setback = rng.uniform(*p.setback)
         pt, u, n, yaw = frame(s + front / 2)
         off = w + sw + setback + depth / 2
         cx, cy = pt + n * off
@@ -415,11 +551,26 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
                     placer.tree(tx, ty)
         elif placer.free(cx, cy, front / 2, depth / 2, byaw, placer.min_building):
             placer.building(cx, cy, front / 2, depth / 2, byaw)
-            if setback > 2.5 and rng.random() < p.hedge:
+            if setback > p.hedge_setback and rng.random() < p.hedge:
                 hx, hy = pt + n * (w + sw + 0.6)
                 if placer.free(hx, hy, front / 2, 0.3, yaw, w + sw + 0.2, pad=0.0):
                     placer.wall(hx, hy, front / 2, rng.uniform(0.15, 0.5), yaw, rng.random() < 0.5)
-        s += front + (0.0 if rng.random() < 0.3 else rng.uniform(2.0, 14.0))
+        gap = 0.0 if rng.random() < p.no_gap else rng.uniform(*p.building_gap)
+        if p.gap_fence > 0 and gap > 1.5 and rng.random() < p.gap_fence:
+            # a wall or fence across the gap, on the line of this building's façade
+            gpt, _, _, gyaw = frame(s + front + gap / 2)
+            gx, gy = gpt + n * (w + sw + setback)
+            half = gap / 2 - 0.5
+            if placer.free(gx, gy, half, 0.2, gyaw, w + sw + 0.2, pad=0.0):
+                placer.wall(gx, gy, half, rng.uniform(0.1, 0.3), gyaw, rng.random() < 0.4)
+        s += front + gap
+
+
+def _walk_street(placer: _Placer, frame, total: float, side: int) -> None:
+    """Street trees, poles, parked cars (and the dense world's bushes and street furniture)
+    along one side of a street."""
+    rng, p = placer.rng, placer.p
+    w, sw = p.road_half_width, p.sidewalk_width
     # street trees (density varies along the street)
     s = rng.uniform(0, 10)
     while s < total:
@@ -427,26 +578,45 @@ def _walk_side(placer: _Placer, line: np.ndarray, side: int) -> None:
         x, y = pt + n * (w + sw - rng.uniform(0.6, 1.2))
         if placer.free(x, y, 0.5, 0.5, 0.0, w + 0.5, w + sw + 0.5, pad=0.0):
             placer.tree(x, y)
-        s += rng.uniform(*p.tree_spacing) * (1.0 if rng.random() < 0.7 else 3.0)
+        s += rng.uniform(*p.tree_spacing) * (1.0 if rng.random() < p.tree_regular else 3.0)
     # street lights and signs near the kerb
     s = rng.uniform(0, 20)
     while s < total:
         pt, u, n, yaw = frame(s)
         x, y = pt + n * (w + rng.uniform(0.3, 0.7))
         if placer.free(x, y, 0.2, 0.2, 0.0, w + 0.2, w + sw, pad=0.0):
-            placer.pole(x, y, yaw, sign=rng.random() < 0.3)
+            placer.pole(x, y, yaw, sign=rng.random() < p.sign_fraction)
         s += rng.uniform(*p.light_spacing)
     # parked cars in irregular runs
     s = rng.uniform(0, 30)
     while s < total:
         if rng.random() < p.parked_run:
-            for _ in range(rng.integers(1, 7)):
+            for _ in range(rng.integers(*p.parked_run_cars)):
                 pt, u, n, yaw = frame(s)
                 x, y = pt + n * (w - 1.2)
                 if placer.free(x, y, 2.4, 1.0, yaw, w - 2.3, w + 0.2, pad=0.0):
                     placer.car(x, y, yaw + rng.uniform(-0.04, 0.04) + (np.pi if side < 0 else 0))
-                s += rng.uniform(5.0, 8.0)
-        s += rng.uniform(10.0, 50.0)
+                s += rng.uniform(*p.parked_spacing)
+        s += rng.uniform(*p.parked_gap)
+    # bushes on the strip between the sidewalk and the façades (dense worlds only)
+    if p.bush_spacing is not None:
+        s = rng.uniform(0, 5)
+        while s < total:
+            pt, u, n, yaw = frame(s)
+            r = rng.uniform(0.6, 1.5)
+            x, y = pt + n * (w + sw + r + rng.uniform(0.1, 1.5))
+            if placer.free(x, y, r, r, 0.0, w + sw, pad=0.0):
+                placer.bush(x, y, r, rng.uniform(0.6, 1.2))
+            s += rng.uniform(*p.bush_spacing)
+    # street furniture on the sidewalk (dense worlds only)
+    if p.furniture_spacing is not None:
+        s = rng.uniform(0, 10)
+        while s < total:
+            pt, u, n, yaw = frame(s)
+            x, y = pt + n * (w + rng.uniform(0.8, max(sw - 0.6, 0.9)))
+            if placer.free(x, y, 0.8, 0.8, yaw, w + 0.3, w + sw, pad=0.0):
+                placer.furniture(x, y, yaw)
+            s += rng.uniform(*p.furniture_spacing)
 
 
 def build_world(
@@ -473,9 +643,11 @@ def build_world(
     ground = Ground((float(origin[0]), float(origin[1])), p.height_cell, height,
                     p.region_cell, region, p.curb)
     placer = _Placer(ground, dist, p, rng)
-    for line in lines:
-        for side in (1, -1):
-            _walk_side(placer, line, side)
+    parts = ("buildings", "street") if p.buildings_first else ("all",)
+    for part in parts:
+        for line in lines:
+            for side in (1, -1):
+                _walk_side(placer, line, side, part)
     starts = np.asarray(placer.object_starts, dtype=np.int64)
     objects = np.searchsorted(starts, np.arange(len(placer.rows)), side="right").astype(np.uint32)
     return World(ground, make_primitives(placer.rows), objects)

@@ -6,7 +6,9 @@ Two modes (``source``):
   ESM's network and PROSAC): the pipeline builds the local map of every frame
   (:mod:`lidar_iris_eval.localmaps`, the scans of the last ``window`` frames,
   ``window`` = the evaluation's E); its segments are the frame's features
-  (:mod:`.local_segments`); a query is matched against the target map of the
+  (:mod:`.local_segments`), with persistent ids and an embedding cache
+  (:mod:`.tracking`: ``describe`` = ``growth``, SegMap's rule, re-describes
+  only segments that grew by ``growth`` = 10 %); a query is matched against the target map of the
   segments of every frame ``<= i - E`` (:mod:`.target_map`), which gives one
   matched frame and a 6-DoF pose;
 * ``scan`` (preset ``single-scan``, not the authors' setting): each scan is
@@ -48,9 +50,10 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor, Verification
 from lidar_iris_eval.descriptors.esm import network
-from lidar_iris_eval.descriptors.esm.local_segments import segment_local_map
+from lidar_iris_eval.descriptors.esm.local_segments import local_map_clusters, sample_segment
 from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams, segment_scan
 from lidar_iris_eval.descriptors.esm.target_map import Localisation, localise, target_lifetimes
+from lidar_iris_eval.descriptors.esm.tracking import DESCRIBE_RULES, SegmentTracker, content_digest
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.matching.geometry import prosac_rigid
 
@@ -93,6 +96,8 @@ class ESMParams:
     min_target: int = 50  # SegMap matches only once the target holds this many segments
     frame_rule: str = "estimate"  # matched frame: "estimate" or SegMap's "segments"
     max_offset: float = 4.0  # "estimate": reject when the nearest frame is farther (m)
+    describe: str = "growth"  # embedding cache (tracking.py): "all", "exact" or SegMap's "growth"
+    growth: float = 0.1  # "growth": re-describe at >= (1 + growth) x the voxels last described
 
     def __post_init__(self) -> None:
         if self.source not in _SOURCES:
@@ -103,6 +108,11 @@ class ESMParams:
         if self.frame_rule not in ("estimate", "segments"):
             raise LirisError("esm.frame_rule", "must be 'estimate' or 'segments', "
                                                f"got {self.frame_rule!r}")
+        if self.describe not in DESCRIBE_RULES:
+            raise LirisError("esm.describe", f"must be one of {', '.join(DESCRIBE_RULES)}, "
+                                             f"got {self.describe!r}")
+        if not self.growth >= 0:
+            raise LirisError("esm.growth", f"must be 0 or more, got {self.growth}")
         if int(self.min_consistent) < 3:
             raise LirisError("esm.min_consistent", "a rigid fit needs at least 3 pairs")
         if self.ground not in _GROUND:
@@ -153,7 +163,10 @@ class ESM(Descriptor):
     def __init__(self, params: Any = None, preset: str = "custom"):
         super().__init__(params, preset)
         self._weights = None
-        self.timing = {"segmentation": 0.0, "description": 0.0, "scans": 0}
+        self.timing = {"segmentation": 0.0, "description": 0.0, "scans": 0,
+                       "described": 0, "reused": 0}
+        self.tracker = SegmentTracker(self.params.describe, self.params.growth)
+        self._reused: float | None = None
         if self.local_map:  # the pipeline builds a local map per frame (extract.py)
             self.inputs = frozenset({"points", "local_map"})
 
@@ -194,6 +207,15 @@ class ESM(Descriptor):
         p = self.params
         return LocalMapSettings(window=self.window, voxel=p.voxel, radius=p.map_radius,
                                 input_filter=p.input_filter, odometry=p.odometry)
+
+    def run_info(self) -> dict[str, Any]:
+        """The local maps (base class), the embedding-cache rule and its hit rate."""
+        info = super().run_info()
+        if self.local_map:
+            info["describe_rule"] = self.params.describe
+            info["embedding_reuse_rate"] = (round(self._reused, 4) if self._reused is not None
+                                            else None)
+        return info
 
     # ------------------------------------------------------------------ describe
 
@@ -261,31 +283,66 @@ class ESM(Descriptor):
         return {"embedding": emb.astype(np.float32), "quality": q.astype(np.float64),
                 "centroids": segs.centroids.astype(np.float64)}
 
+    def begin_local_maps(self, start: int) -> None:
+        """Start segment tracking afresh (called at the start of every extraction chunk)."""
+        self.tracker.reset()
+
     def compute_local_map(self, frame: Any) -> dict[str, np.ndarray]:
         """Feature set of one :class:`~lidar_iris_eval.localmaps.LocalMapFrame`.
 
         ``centroids`` are in the frame's LiDAR frame, ``world`` in the world
-        frame of the odometry, ``pose`` the frame's world-from-LiDAR pose.
+        frame of the odometry, ``pose`` the frame's world-from-LiDAR pose,
+        ``ids`` the persistent segment ids and ``described`` 1 where the
+        network ran this frame, 0 where the embedding was reused
+        (:mod:`.tracking`). Frames must come in order (a frame that does not
+        follow the previous one starts tracking afresh).
         """
         if not hasattr(frame, "pose"):
             raise LirisError("esm.source", "is 'local-map' but was given a scan; use the "
                                            "single-scan preset (-d esm:single-scan) on scans")
+        sp = self.segment_params
         t0 = time.thread_time()
-        pts, world, sizes = segment_local_map(frame.points, self.segment_params)
+        pts = np.asarray(frame.points, dtype=np.float64)
+        keys = voxel_keys(frame, self.params.voxel)
+        members = local_map_clusters(pts, sp)
+        seg_keys = [keys[m] for m in members]
+        ids = self.tracker.assign(int(frame.frame), seg_keys)
+        world = np.array([pts[m].mean(axis=0) for m in members]).reshape(-1, 3)
+        sizes = np.array([len(m) for m in members], np.int64)
         t1 = time.thread_time()
         w, arch = self.weights()
-        emb = network.embed(w, arch, pts)
-        q = network.quality(w, emb) if len(emb) else np.zeros(0)
+        n = len(members)
+        emb = np.zeros((n, arch.fc[-1]), np.float32)
+        q = np.zeros(n, np.float64)
+        fresh = np.zeros(n, np.int8)
+        digests = [content_digest(seg_keys[s], pts[members[s]]) for s in range(n)]
+        for s in range(n):
+            hit = self.tracker.lookup(ids[s], int(sizes[s]), digests[s])
+            if hit is None:
+                fresh[s] = 1
+            else:
+                emb[s], q[s] = hit
+        todo = np.nonzero(fresh)[0]
+        if len(todo):
+            batch = np.stack([sample_segment(pts[members[s]], seg_keys[s], sp) for s in todo])
+            e = network.embed(w, arch, batch)
+            emb[todo], q[todo] = e, network.quality(w, e)
+            for s in todo:
+                self.tracker.store(ids[s], int(sizes[s]), digests[s], emb[s], q[s])
+        self.tracker.forget_ended(ids)
         t2 = time.thread_time()
         self.timing["segmentation"] += t1 - t0
         self.timing["description"] += t2 - t1
         self.timing["scans"] += 1
+        self.timing["described"] += int(len(todo))
+        self.timing["reused"] += int(n - len(todo))
         pose = np.asarray(frame.pose, dtype=np.float64)
         inv = np.linalg.inv(pose)
         local = world @ inv[:3, :3].T + inv[:3, 3] if len(world) else np.zeros((0, 3))
         return {"embedding": emb.astype(np.float32), "quality": q.astype(np.float64),
                 "centroids": local.astype(np.float64), "world": world.astype(np.float64),
-                "sizes": sizes.astype(np.int64), "pose": pose.reshape(1, 4, 4)}
+                "sizes": sizes, "pose": pose.reshape(1, 4, 4), "ids": ids.astype(np.int64),
+                "described": fresh}
 
     # ------------------------------------------------------------------ stage 1
 
@@ -308,6 +365,8 @@ class ESM(Descriptor):
         if self.local_map:
             if frames and "world" not in frames[0]:
                 raise LirisError("esm.source", "'local-map' needs features of local maps")
+            if frames and "described" in frames[0] and len(db.quality):
+                self._reused = 1.0 - float(flat("described", np.int64, 1).mean())
             db.world = flat("world", np.float64, 3)
             db.poses = flat("pose", np.float64, 16).reshape(-1, 4, 4)
             db.alive_until = target_lifetimes(db.world, db.frame_of, n, self.params.dedup,
@@ -459,3 +518,20 @@ class ESM(Descriptor):
                                 minlength=len(cols))
             out[r] = 1.0 / (1.0 + votes)
         return out
+
+
+def voxel_keys(frame: Any, voxel: float) -> np.ndarray:
+    """The voxel key of every point of a local map (``frame.keys``, or from its centroids).
+
+    A voxel centroid in millimetres lies within its voxel (its points were
+    rounded to millimetres first), so ``floor((x_mm + 0.5) / voxel_mm)`` is its
+    voxel index without rounding trouble at the faces.
+    """
+    keys = getattr(frame, "keys", None)
+    if keys is not None:
+        return np.asarray(keys, dtype=np.int64)
+    from lidar_iris_eval.localmaps.grid import encode
+
+    voxel_mm = int(round(voxel * 1000))
+    mm = np.asarray(frame.points, dtype=np.float64) * 1000.0
+    return encode(np.floor((mm + 0.5) / voxel_mm).astype(np.int64))

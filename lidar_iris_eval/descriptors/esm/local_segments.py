@@ -7,12 +7,17 @@ Euclidean clusters at ``radius`` (0.2 m), clusters of ``min_points`` to
 network's 256 points and normalised exactly as single-scan segments are
 (:func:`~lidar_iris_eval.descriptors.esm.segmentation.normalise`).
 
-Segmentation is redone at every frame (not SegMap's incremental segmenter with
-persistent ids): the map of frame ``i`` gives the same segments whatever frame
-extraction started from.
+The partition is computed from the whole map at every frame, so the map of
+frame ``i`` gives the same segments whatever frame extraction started from.
+Persistent segment ids and the embedding cache (which segments need the
+network) are :mod:`.tracking`'s; :func:`local_map_clusters` and
+:func:`sample_segment` are the pieces it uses (:func:`segment_local_map`, the
+untracked function, keeps its index-seeded resampling and its return).
 """
 
 from __future__ import annotations
+
+import hashlib
 
 import numpy as np
 
@@ -25,10 +30,11 @@ from lidar_iris_eval.descriptors.esm.segmentation import (
 
 
 def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[np.ndarray]:
-    """The voxel indices of each segment of a local map, in the order of :func:`segment_local_map`.
+    """The segments of a local map as arrays of voxel indices (rows of ``world_points``).
 
-    Euclidean clusters at ``params.radius`` of ``min_points`` to ``max_points``
-    voxels, ordered by their first voxel (key order).
+    Clusters of ``min_points`` to ``max_points`` voxels, ordered by their first
+    voxel (key order, the order of :func:`segment_local_map`); each array is
+    increasing.
     """
     pts = np.asarray(world_points, dtype=np.float64)
     if len(pts) == 0:
@@ -41,6 +47,21 @@ def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[
     return [order[bounds[c]:bounds[c + 1]] for c in good]
 
 
+def content_seed(keys: np.ndarray) -> int:
+    """A 64-bit seed from a segment's voxel keys (its content, not its index in the frame)."""
+    digest = hashlib.blake2b(np.ascontiguousarray(keys, dtype="<i8").tobytes(), digest_size=8)
+    return int.from_bytes(digest.digest(), "little")
+
+
+def sample_segment(points: np.ndarray, keys: np.ndarray, params: SegmentParams) -> np.ndarray:
+    """One segment's network input: ``n_points`` resampled with the stream
+    ``[seed, content_seed(keys)]``, normalised as single-scan segments are."""
+    rng = np.random.default_rng([params.seed, content_seed(keys)])
+    normed, _ = normalise(resample(np.asarray(points, dtype=np.float64), params.n_points, rng),
+                          params.norm_scale, params.align_yaw)
+    return normed
+
+
 def segment_local_map(world_points: np.ndarray, params: SegmentParams):
     """Segments of a local map's voxel centroids ``(M, 3)`` (world frame).
 
@@ -49,13 +70,20 @@ def segment_local_map(world_points: np.ndarray, params: SegmentParams):
     resampled with the stream ``[seed, s]``.
     """
     pts = np.asarray(world_points, dtype=np.float64)
-    clusters = local_map_clusters(pts, params)
-    if not clusters:
-        return (np.zeros((0, params.n_points, 3), np.float32), np.zeros((0, 3)),
-                np.zeros(0, np.int64))
+    empty = (np.zeros((0, params.n_points, 3), np.float32), np.zeros((0, 3)),
+             np.zeros(0, np.int64))
+    if len(pts) == 0:
+        return empty
+    comp = euclidean_clusters(pts, params.radius)
+    counts = np.bincount(comp)
+    good = np.nonzero((counts >= params.min_points) & (counts <= params.max_points))[0]
+    if len(good) == 0:
+        return empty
+    order = np.argsort(comp, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(counts)])
     out, cents, sizes = [], [], []
-    for s, members in enumerate(clusters):
-        seg = pts[members]
+    for s, c in enumerate(good):
+        seg = pts[order[bounds[c]:bounds[c + 1]]]
         rng = np.random.default_rng([params.seed, s])
         normed, _ = normalise(resample(seg, params.n_points, rng), params.norm_scale,
                               params.align_yaw)
