@@ -104,7 +104,9 @@ def descriptor_code_hash(descriptor: Descriptor) -> str:
     sub-folders included, plus the shared modules directly in
     ``descriptors/`` (base class, common helpers). A descriptor defined
     elsewhere hashes its own package folder when its module sits in a package
-    (a plug-in sub-package: helpers included), else its own file.
+    (a plug-in sub-package: helpers included), else its own file. A descriptor
+    with a ``cache_token()`` method (a checksum of data files it reads, such as
+    learned weights) appends it.
     """
     module = sys.modules.get(type(descriptor).__module__)
     own = getattr(module, "__file__", None)
@@ -113,6 +115,9 @@ def descriptor_code_hash(descriptor: Descriptor) -> str:
         from lidar_iris_eval.localmaps.extraction import local_map_code_hash
 
         code = f"{code}+{local_map_code_hash()}"
+    token = getattr(descriptor, "cache_token", None)
+    if token is not None:  # data the output depends on besides the code (e.g. ESM's weights)
+        code = f"{code}+{token()}"
     return code
 
 

@@ -71,12 +71,18 @@ def test_parameters_are_checked():
         get_descriptor("esm", min_inliers=2)
 
 
-def test_golden_embeddings_of_the_shipped_weights():
-    _need_weights()
-    gold = np.load(DATA)
-    assert str(gold["sha256"]) == network.sha256_of(network.WEIGHTS_FILE), \
-        "weights changed: regenerate tests/data/esm_golden.npz"
-    w, arch = network.load_weights()
+@pytest.mark.parametrize("weights, golden", [
+    (network.WEIGHTS_FILE, DATA),
+    (network.LOCALMAP_WEIGHTS_FILE, DATA.with_name("esm_localmap_golden.npz")),
+])
+def test_golden_embeddings_of_the_shipped_weights(weights, golden):
+    if not weights.is_file():
+        pytest.skip(f"no {weights.name}")
+    assert golden.is_file(), f"{weights.name} has no golden file: write tests/data/{golden.name}"
+    gold = np.load(golden)
+    assert str(gold["sha256"]) == network.sha256_of(weights), \
+        f"weights changed: regenerate tests/data/{golden.name}"
+    w, arch = network.load_weights(weights)
     emb = network.embed(w, arch, gold["points"])
     assert np.allclose(emb, gold["embedding"], atol=1e-5)
     q = network.quality(w, emb)

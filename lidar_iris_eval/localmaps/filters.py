@@ -29,11 +29,18 @@ class InputFilter:
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """The kept ``(M, 3)`` float64 points of ``(N, 3+)`` sensor-frame points."""
-        pts = np.asarray(points, dtype=np.float64)[:: max(1, int(self.every)), :3]
-        keep = np.isfinite(pts).all(axis=1)
+        pts = np.asarray(points, dtype=np.float64)[:, :3]
+        return pts[self.mask(pts)]
+
+    def mask(self, points: np.ndarray) -> np.ndarray:
+        """``(N,)`` True for the points :meth:`apply` keeps (in their order)."""
+        pts = np.asarray(points, dtype=np.float64)[:, :3]
+        keep = np.zeros(len(pts), bool)
+        keep[:: max(1, int(self.every))] = True
+        keep &= np.isfinite(pts).all(axis=1)
         keep &= pts[:, 2] >= self.min_z
         keep &= np.hypot(pts[:, 0], pts[:, 1]) <= self.max_range
-        return pts[keep]
+        return keep
 
 
 #: the named filters (module docstring)

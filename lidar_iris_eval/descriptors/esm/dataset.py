@@ -11,6 +11,14 @@ their world centroids lie within ``pair_radius`` metres (a long facade split
 into pieces gives several segments per scan; only the same piece counts) and
 their frames are at least ``min_frame_gap`` apart (neighbouring scans would be
 near-duplicates). Negatives for training are other objects of the same class.
+
+:func:`simulate_local_map_segments` does the same on **local maps** built as at
+run time (:mod:`lidar_iris_eval.localmaps`: the scans of the last ``window``
+frames, the input filter, gt poses, 0.1 m voxels, 50 m cylinder) and segmented
+by the run-time segmenter (:func:`.local_segments.local_map_clusters`); a
+segment's object is the one most of the filtered scan points inside its voxels
+hit (the window's scans, each point tagged by the simulator). Its true pairs
+use ``min_frame_gap = window`` (E): two local maps that far apart share no scan.
 """
 
 from __future__ import annotations
@@ -151,3 +159,123 @@ def true_pairs(
     same &= np.abs(data.frame[a] - data.frame[b]) >= min_frame_gap
     out = np.stack([a[same], b[same]], axis=1)
     return np.sort(out, axis=1)
+
+
+def simulate_local_map_segments(
+    config_overrides: dict, world_index: int = 0, params: SegmentParams | None = None,
+    every: int = 10, window: int = 30, input_filter: str = "all", map_radius: float = 50.0,
+    max_points: int = 1024, progress: bool = True, shape_variety: bool = False,
+) -> SegmentSet:
+    """Simulate a sequence in memory; segment the local map of every ``every``-th frame.
+
+    Every scan is simulated (a local map holds the last ``window`` scans, placed
+    by the gt poses after the named ``input_filter``). A segment's stored points
+    are its voxel centroids in the world frame (as at run time), at most
+    ``max_points`` of them (a seeded uniform subset: the network resamples 256
+    uniformly anyway); ``world`` is the centroid of all its voxels.
+    """
+    from collections import deque
+
+    from lidar_iris_eval.descriptors.esm.local_segments import local_map_clusters
+    from lidar_iris_eval.localmaps import LocalMap
+    from lidar_iris_eval.localmaps import input_filter as get_filter
+    from lidar_iris_eval.localmaps.grid import encode
+    from lidar_iris_eval.simulate.pipeline import _NOISE, build_scenario
+    from lidar_iris_eval.simulate.presets import resolve_config
+    from lidar_iris_eval.simulate.sensors import simulate_scan
+    from lidar_iris_eval.simulate.world import WorldParams
+
+    p = params or SegmentParams()
+    cfg = resolve_config(None, config_overrides)
+    scen = build_scenario(cfg, WorldParams(shape_variety=shape_variety))
+    dirs = scen.sensor.grid.directions
+    filt = get_filter(input_filter)
+    lm = LocalMap(window, p.voxel, map_radius, filt)
+    voxel_mm = lm.grid.voxel_mm
+    recent: deque = deque()  # (frame, voxel keys, object ids, classes) of the window's points
+    pts, offs, obj, coarse, frame, world, purity = [], [0], [], [], [], [], []
+    for i in tqdm(range(len(scen.poses)), desc=f"local maps world {world_index}",
+                  disable=not progress, leave=False):
+        rng = np.random.default_rng([cfg.seed, _NOISE, i])
+        pose = scen.poses[i]
+        scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(i), pose, rng, dirs)
+        keep = filt.mask(scan.points)
+        placed = np.asarray(scan.points, np.float64)[keep, :3] @ pose[:3, :3].T + pose[:3, 3]
+        keys = encode(np.floor_divide(np.rint(placed * 1000.0).astype(np.int64), voxel_mm))
+        recent.append((i, keys, scen.object_ids(i, scan.row)[keep],
+                       (scan.label[keep] & 0xFFFF).astype(np.int64)))
+        while recent[0][0] <= i - window:
+            recent.popleft()
+        lm.update(i, scan.points, pose)
+        if i % every:
+            continue
+        centroids = lm.grid.centroids()
+        clusters = local_map_clusters(centroids, p)
+        if not clusters:
+            continue
+        seg_of = -np.ones(len(centroids), np.int64)
+        for s, members in enumerate(clusters):
+            seg_of[members] = s
+        wkeys = np.concatenate([r[1] for r in recent])
+        wids = np.concatenate([r[2] for r in recent])
+        wcls = np.concatenate([r[3] for r in recent])
+        pos = np.minimum(np.searchsorted(lm.grid.keys, wkeys), len(centroids) - 1)
+        hit = lm.grid.keys[pos] == wkeys
+        seg = np.where(hit, seg_of[pos], -1)
+        inside = seg >= 0
+        tags = _dominant(seg[inside], wids[inside], wcls[inside], len(clusters))
+        sub = np.random.default_rng([cfg.seed, i])
+        for s, members in enumerate(clusters):
+            vox = centroids[members]
+            dominant, share, cls = tags[s]
+            kept = vox if len(vox) <= max_points else \
+                vox[np.sort(sub.choice(len(vox), max_points, replace=False))]
+            pts.append(kept.astype(np.float32))
+            offs.append(offs[-1] + len(kept))
+            obj.append(dominant)
+            coarse.append(COARSE.get(cls, 0))
+            frame.append(i)
+            world.append(vox.mean(axis=0))
+            purity.append(share)
+    n = len(frame)
+    return SegmentSet(
+        points=np.concatenate(pts) if pts else np.zeros((0, 3), np.float32),
+        offsets=np.asarray(offs, np.int64), object_id=np.asarray(obj, np.int64),
+        coarse=np.asarray(coarse, np.int8), frame=np.asarray(frame, np.int64),
+        world=np.asarray(world).reshape(n, 3), purity=np.asarray(purity, np.float64),
+        world_id=np.full(n, world_index, np.int64),
+    )
+
+
+def _dominant(seg: np.ndarray, ids: np.ndarray, cls: np.ndarray, n: int) -> list:
+    """Per segment ``0..n-1``: (dominant object id, its share of the points, its class).
+
+    ``seg``, ``ids``, ``cls``: a segment, object id and class per point. The
+    class is the most frequent one among the dominant object's points; a
+    segment without points gets ``(0, 0.0, 0)``.
+    """
+    out = [(0, 0.0, 0)] * n
+    if len(seg) == 0:
+        return out
+    pairs, counts = np.unique(np.stack([seg, ids]), axis=1, return_counts=True)
+    totals = np.bincount(seg, minlength=n)
+    for s in np.unique(pairs[0]):
+        cols = np.nonzero(pairs[0] == s)[0]
+        top = cols[np.argmax(counts[cols])]  # ties: the smaller id (np.unique's order)
+        dominant = int(pairs[1, top])
+        m = (seg == s) & (ids == dominant)
+        vals, c = np.unique(cls[m], return_counts=True)
+        out[int(s)] = (dominant, float(counts[top] / totals[s]), int(vals[np.argmax(c)]))
+    return out
+
+
+def negative_candidates(coarse: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """``(B, B)`` True where pair ``j``'s positive may be anchor ``i``'s negative.
+
+    The in-batch rule of training: another object of the same coarse class, or
+    any other object when the batch holds no other object of that class.
+    """
+    coarse, objects = np.asarray(coarse), np.asarray(objects)
+    other = objects[:, None] != objects[None, :]
+    same_cls = (coarse[:, None] == coarse[None, :]) & other
+    return np.where(same_cls.any(axis=1, keepdims=True), same_cls, other)

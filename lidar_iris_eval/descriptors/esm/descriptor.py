@@ -82,7 +82,8 @@ class ESMParams:
     iterations: int = 300
     confidence: float = 0.99
     num_candidates: int = 10
-    weights: str = ""  # "" = the weights shipped in the package
+    # the network: a file shipped in the package folder (by name) or a path; "" = esm_weights.npz
+    weights: str = "esm_weights.npz"
     # local-map mode (SegMap's pipeline); see the module docstring
     source: str = "local-map"
     window: int = 0  # W frames per local map; 0 = the evaluation's E
@@ -226,14 +227,34 @@ class ESM(Descriptor):
                              p.max_points, arch.n_points, p.seed, arch.norm_scale,
                              arch.align_yaw)
 
+    @property
+    def weights_path(self):
+        """The weights file ``esm.weights`` names (:func:`network.resolve_weights`)."""
+        return network.resolve_weights(self.params.weights)
+
     def weights(self) -> tuple[dict, network.Arch]:
         if self._weights is None:
-            path = self.params.weights or network.WEIGHTS_FILE
+            path = self.weights_path
             try:
                 self._weights = network.load_weights(path)
-            except OSError as err:
-                raise LirisError(path, f"cannot read ESM weights ({err})") from None
+            except (OSError, KeyError, ValueError) as err:
+                raise LirisError(f"esm.weights={self.params.weights}",
+                                 f"cannot read ESM weights {path} ({err})") from None
         return self._weights
+
+    def cache_token(self) -> str:
+        """SHA-256 (16 hex) of the weights file: part of the cache key (extract.py)."""
+        path = self.weights_path
+        try:
+            return network.sha256_of(path)[:16]
+        except OSError as err:
+            raise LirisError(f"esm.weights={self.params.weights}",
+                             f"cannot read ESM weights {path} ({err})") from None
+
+    def run_info(self) -> dict[str, Any]:
+        """The base keys plus the weights file and its checksum (metrics.json rows)."""
+        return {**super().run_info(), "weights": self.weights_path.name,
+                "weights_sha256": self.cache_token()}
 
     def describe(self, scan: Any) -> dict[str, np.ndarray]:
         return self.compute(scan)

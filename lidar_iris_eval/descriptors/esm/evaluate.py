@@ -3,7 +3,10 @@
 Run as ``python -m lidar_iris_eval.descriptors.esm.evaluate kitti DIR`` (DIR holds
 ``velodyne/``, ``poses.txt`` and ``calib.txt`` of KITTI 00's scans 94, 95, 198, 199)
 or ``... zero-fp RUN`` (a ``liris eval`` run folder with protocol 1), or
-``... golden VALID.npz`` (CI's golden embeddings from held-out segments). Timings are
+``... golden VALID.npz [--weights W]`` (CI's golden embeddings from held-out segments),
+or ``... auc SEGMENTS.npz --weights A --weights B [--gap 30]`` (segment-retrieval ROC
+AUC and accuracy@k of each weights file on held-out segments, side by side; a
+``SegmentSet`` file such as ``scripts/train_esm.py``'s ``lm_valid_segments.npz``). Timings are
 per-thread CPU time (one core, robust to a shared machine) with BLAS limited to
 one thread (``OMP_NUM_THREADS=1``), best of 3 per scan; the figures are printed as JSON.
 """
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -100,40 +104,91 @@ def zero_fp_report(run: Path, name: str = "esm") -> dict:
     }
 
 
-def write_golden(valid: Path, out: Path, n: int = 6) -> dict:
-    """Golden inputs and outputs of the shipped weights for CI (``tests/data/esm_golden.npz``).
+def write_golden(valid: Path, out: Path, n: int = 6, weights: str | Path | None = None) -> dict:
+    """Golden inputs and outputs of shipped weights for CI (``tests/data/esm*_golden.npz``).
 
     The inputs are the first ``n`` held-out segments of distinct objects, resampled and
-    normalised as at run time.
+    normalised as at run time; ``weights`` names the file (default ``esm_weights.npz``).
     """
     from lidar_iris_eval.descriptors.esm import network
     from lidar_iris_eval.descriptors.esm.dataset import SegmentSet
     from lidar_iris_eval.descriptors.esm.segmentation import normalise, resample
 
+    path = network.resolve_weights(weights)
     data = SegmentSet.load(valid)
     _, first = np.unique(data.object_id, return_index=True)
     rows = np.sort(first[data.object_id[first] > 0])[:n]
-    w, arch = network.load_weights()
+    w, arch = network.load_weights(path)
     pts = np.stack([normalise(resample(data.segment(s), arch.n_points,
                                        np.random.default_rng([0, int(s)])), arch.norm_scale,
                               arch.align_yaw)[0]
                     for s in rows])
     emb = network.embed(w, arch, pts)
     gold = {"points": pts, "embedding": emb, "quality": network.quality(w, emb),
-            "sha256": np.array(network.sha256_of(network.WEIGHTS_FILE))}
+            "sha256": np.array(network.sha256_of(path)), "weights": np.array(path.name)}
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez(out, **gold)
-    return {"golden": str(out), "segments": int(len(rows))}
+    return {"golden": str(out), "weights": path.name, "segments": int(len(rows))}
+
+
+def auc_report(segments: Path, weights: list, gap: int = 30, n: int = 3000) -> dict:
+    """Segment-retrieval ROC AUC, its class split and accuracy@k of each weights file.
+
+    ``segments``: a :class:`~lidar_iris_eval.descriptors.esm.dataset.SegmentSet` file
+    (held-out segments with object tags); ``gap``: frames two segments of a true pair
+    or a scored pair must lie apart (30 = W for local maps, 10 for single scans).
+    """
+    from lidar_iris_eval.descriptors.esm import network
+    from lidar_iris_eval.descriptors.esm.dataset import SegmentSet
+    from lidar_iris_eval.descriptors.esm.metrics import segment_retrieval
+    from lidar_iris_eval.errors import LirisError
+
+    try:
+        data = SegmentSet.load(segments)
+    except (OSError, KeyError, ValueError) as err:
+        raise LirisError(str(segments), f"not a segment set ({err})") from None
+    out = {"segments": str(segments), "n_segments": len(data), "min_frame_gap": gap,
+           "weights": {}}
+    for name in weights or ["esm_weights.npz"]:
+        path = network.resolve_weights(name)
+        try:
+            w, arch = network.load_weights(path)
+        except (OSError, KeyError, ValueError) as err:
+            raise LirisError(f"--weights {name}", f"cannot read ESM weights ({err})") from None
+        m = segment_retrieval(w, arch, data, gap, n)
+        out["weights"][path.name] = {
+            "sha256": network.sha256_of(path)[:16],
+            **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in m.items()
+               if k != "roc"}}
+    return out
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=["kitti", "zero-fp", "golden"])
+    ap.add_argument("what", choices=["kitti", "zero-fp", "golden", "auc"])
     ap.add_argument("path", type=Path)
-    ap.add_argument("--out", type=Path, default=Path("tests/data/esm_golden.npz"))
+    ap.add_argument("--out", type=Path, default=None,
+                    help="golden file (default tests/data/esm_golden.npz, or "
+                         "esm_localmap_golden.npz for --weights esm_localmap_weights.npz)")
+    ap.add_argument("--weights", action="append", default=None,
+                    help="weights file (shipped name or path); auc: repeat to compare")
+    ap.add_argument("--gap", type=int, default=30, help="auc: minimum frame gap of a pair")
+    ap.add_argument("--max-segments", type=int, default=3000, help="auc: segments scored")
     args = ap.parse_args(argv)
     if args.what == "golden":
-        out = write_golden(args.path, args.out)
+        weights = args.weights[0] if args.weights else None
+        default = "esm_golden.npz" if weights in (None, "", "esm_weights.npz") else \
+            f"{Path(weights).stem.replace('_weights', '')}_golden.npz"
+        out = write_golden(args.path, args.out or Path("tests/data") / default,
+                           weights=weights)
+    elif args.what == "auc":
+        from lidar_iris_eval.errors import LirisError
+
+        try:
+            out = auc_report(args.path, args.weights, args.gap, args.max_segments)
+        except LirisError as err:
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(2) from None
     else:
         out = kitti_report(args.path) if args.what == "kitti" else zero_fp_report(args.path)
     print(json.dumps(out, indent=2))

@@ -80,3 +80,38 @@ def retrieval_metrics(
             "positives": int(len(pos)), "negatives": int(len(neg)),
             "queries": int(has.sum()), "accuracy_at_k": acc,
             "roc": {"fpr": fpr.round(4).tolist(), "tpr": tpr.round(4).tolist()}}
+
+
+def segment_retrieval(w: dict, arch, data, min_frame_gap: int = 10, n: int = 3000,
+                      seed: int = 0, ignore_same_object: bool = False) -> dict:
+    """:func:`retrieval_metrics` of the NumPy network ``(w, arch)`` on held-out segments.
+
+    ``data`` is a :class:`~lidar_iris_eval.descriptors.esm.dataset.SegmentSet`; at
+    most ``n`` of its segments (a seeded uniform subset) are embedded as at run
+    time (resampled with the stream ``[0, s]``, normalised) and scored with the
+    true pairs of :func:`~lidar_iris_eval.descriptors.esm.dataset.true_pairs` at
+    ``min_frame_gap`` (30 = W for local-map segments). ``ignore_same_object``:
+    pairs of one object that are not true pairs are "don't care".
+    """
+    from lidar_iris_eval.descriptors.esm import network
+    from lidar_iris_eval.descriptors.esm.dataset import true_pairs
+    from lidar_iris_eval.descriptors.esm.segmentation import normalise, resample
+
+    vpairs = true_pairs(data, min_frame_gap=min_frame_gap)
+    rows = np.arange(len(data))
+    if len(rows) > n:
+        rows = np.sort(np.random.default_rng(seed).choice(len(data), n, replace=False))
+    emb = network.embed(w, arch, np.stack([
+        normalise(resample(data.segment(s), arch.n_points,
+                           np.random.default_rng([0, int(s)])), arch.norm_scale,
+                  arch.align_yaw)[0]
+        for s in rows]))
+    remap = -np.ones(len(data), np.int64)
+    remap[rows] = np.arange(len(rows))
+    keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
+    key = data.world_id[rows] * (int(data.object_id.max()) + 1) + data.object_id[rows]
+    key = np.where(data.object_id[rows] > 0, key, -1 - np.arange(len(rows)))
+    return retrieval_metrics(emb, data.frame[rows], remap[vpairs[keep]],
+                             min_frame_gap=min_frame_gap, world=data.world_id[rows],
+                             coarse=data.coarse[rows],
+                             ignore=key if ignore_same_object else None)

@@ -43,6 +43,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 WEIGHTS_FILE = Path(__file__).with_name("esm_weights.npz")
+#: the weights trained on local-map segments (scripts/train_esm.py --source local-maps)
+LOCALMAP_WEIGHTS_FILE = Path(__file__).with_name("esm_localmap_weights.npz")
 
 
 @dataclass(frozen=True)
@@ -171,6 +173,18 @@ def quality(w: dict, embeddings: np.ndarray) -> np.ndarray:
     z = z - z.max(axis=1, keepdims=True)
     e = np.exp(z)
     return (e[:, 1] / e.sum(axis=1)).astype(np.float64)
+
+
+def resolve_weights(name: str | Path | None) -> Path:
+    """The weights file ``name`` means: a bare file name shipped beside this module
+    (``esm_weights.npz``, ``esm_localmap_weights.npz``), else a path; empty: ``WEIGHTS_FILE``.
+    """
+    if name is None or str(name) == "":
+        return WEIGHTS_FILE
+    path = Path(name)
+    if path.name == str(name) and (WEIGHTS_FILE.parent / path.name).is_file():
+        return WEIGHTS_FILE.parent / path.name
+    return path
 
 
 def sha256_of(path: Path) -> str:

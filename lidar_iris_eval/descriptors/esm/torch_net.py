@@ -108,3 +108,26 @@ class ESMNet(nn.Module):
         out["q.w"] = self.quality.weight.detach().numpy().T.astype(np.float32).copy()
         out["q.b"] = self.quality.bias.detach().numpy().astype(np.float32)
         return out
+
+    def load_numpy(self, weights: dict[str, np.ndarray]) -> None:
+        """Set every parameter and batch-norm statistic from exported weights (:meth:`export`)."""
+        def put(dst: torch.Tensor, src: np.ndarray) -> None:
+            src = torch.from_numpy(np.asarray(src, dtype=np.float32))
+            if tuple(dst.shape) != tuple(src.shape):
+                raise ValueError(f"weights shape {tuple(src.shape)} does not fit "
+                                 f"{tuple(dst.shape)}: another architecture")
+            dst.copy_(src)
+
+        with torch.no_grad():
+            for i, xc in enumerate(self.xconvs):
+                for key, val in xc.p.items():
+                    put(val, weights[f"x{i}.{key.replace('_', '.')}"])
+                put(xc.bn.weight, weights[f"x{i}.bn.gamma"])
+                put(xc.bn.bias, weights[f"x{i}.bn.beta"])
+                put(xc.bn.running_mean, weights[f"x{i}.bn.mean"])
+                put(xc.bn.running_var, weights[f"x{i}.bn.var"])
+            for i, fc in enumerate(self.fcs):
+                put(fc.weight, np.asarray(weights[f"fc{i}.w"]).T)
+                put(fc.bias, weights[f"fc{i}.b"])
+            put(self.quality.weight, np.asarray(weights["q.w"]).T)
+            put(self.quality.bias, weights["q.b"])

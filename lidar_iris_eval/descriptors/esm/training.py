@@ -34,8 +34,13 @@ import numpy as np
 import torch
 
 from lidar_iris_eval.descriptors.esm import network
-from lidar_iris_eval.descriptors.esm.dataset import COARSE_NAMES, SegmentSet, true_pairs
-from lidar_iris_eval.descriptors.esm.metrics import retrieval_metrics
+from lidar_iris_eval.descriptors.esm.dataset import (
+    COARSE_NAMES,
+    SegmentSet,
+    negative_candidates,
+    true_pairs,
+)
+from lidar_iris_eval.descriptors.esm.metrics import retrieval_metrics, segment_retrieval
 from lidar_iris_eval.descriptors.esm.segmentation import normalise, resample
 from lidar_iris_eval.descriptors.esm.torch_net import ESMNet
 
@@ -79,10 +84,7 @@ def wl_loss(ea: torch.Tensor, ep: torch.Tensor, coarse: np.ndarray, objects: np.
     """Ratio triplet loss plus pairwise term with within-class hardest negatives."""
     d_pos = ((ea - ep) ** 2).sum(1)
     d_all = ((ea[:, None, :] - ep[None, :, :]) ** 2).sum(2)
-    other = torch.from_numpy(objects[:, None] != objects[None, :])
-    same_cls = torch.from_numpy(coarse[:, None] == coarse[None, :]) & other
-    has_same = same_cls.any(1, keepdim=True)
-    allowed = torch.where(has_same, same_cls, other)
+    allowed = torch.from_numpy(negative_candidates(coarse, objects))
     d_neg = torch.where(allowed, d_all, torch.full_like(d_all, float("inf"))).min(1).values
     trip = torch.clamp(1.0 - d_neg / (d_pos + MARGIN), min=0.0)
     return (trip + d_pos).mean(), trip.detach(), d_pos.detach()
@@ -126,40 +128,148 @@ def knn_labels(emb: np.ndarray, data: SegmentSet, rows: np.ndarray, pairs: np.nd
                      for i in range(len(rows))], dtype=np.int64)
 
 
-def _score(net: ESMNet, data: SegmentSet, pairs: np.ndarray, rows: np.ndarray) -> dict:
+def _score(net: ESMNet, data: SegmentSet, pairs: np.ndarray, rows: np.ndarray,
+           gap: int = 10) -> dict:
     """Retrieval metrics of the current network on segments ``rows`` of ``data``."""
     emb = embed_eval(net, data, rows)
     remap = -np.ones(len(data), np.int64)
     remap[rows] = np.arange(len(rows))
     keep = (remap[pairs[:, 0]] >= 0) & (remap[pairs[:, 1]] >= 0)
     return retrieval_metrics(emb, data.frame[rows], remap[pairs[keep]],
-                             world=data.world_id[rows])
+                             world=data.world_id[rows], min_frame_gap=gap)
+
+
+def held_out_rows(data: SegmentSet, n: int, seed: int = 0) -> np.ndarray:
+    """At most ``n`` segment rows of ``data`` (a seeded uniform subset, sorted)."""
+    rows = np.arange(len(data))
+    if len(rows) > n:
+        rows = np.sort(np.random.default_rng(seed).choice(len(data), n, replace=False))
+    return rows
 
 
 def _held_out(w: dict, arch, valid: SegmentSet, rng: np.random.Generator,
-              n: int = 3000, ignore_same_object: bool = False) -> dict:
-    """Figures of the exported NumPy network on (at most ``n`` of) held-out segments.
+              n: int = 3000, ignore_same_object: bool = False, gap: int = 10) -> dict:
+    """Figures of the exported NumPy network on (at most ``n`` of) held-out segments
+    (:func:`metrics.segment_retrieval`; ``rng`` is unused, the subset is seeded 0)."""
+    return segment_retrieval(w, arch, valid, gap, n, 0, ignore_same_object)
 
-    ``ignore_same_object``: pairs of one object that are not true pairs are
-    "don't care" (:func:`metrics.retrieval_metrics`'s ``ignore``).
+
+def _save(obj, path: Path) -> None:
+    """``torch.save`` through the atomic writer (a kill never leaves half a checkpoint)."""
+    from lidar_iris_eval.atomic import atomic_write
+
+    atomic_write(path, lambda fh: torch.save(obj, fh), what="checkpoint")
+
+
+def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Path,
+           select_set, gap: int, log: dict) -> None:
+    """The resumable training loop (``state.pt``; module docstring of scripts/train_esm.py).
+
+    Progress is counted in training minutes and steps summed over runs; the
+    state (network, optimiser, step, minutes, NumPy and torch random states,
+    selection checks, loss history) is written atomically every
+    ``checkpoint_every`` minutes and at the end, so rerunning continues where
+    the last checkpoint stopped.
     """
-    vpairs = true_pairs(valid)
-    rows = np.arange(len(valid))
-    if len(rows) > n:
-        rows = np.sort(rng.choice(len(valid), n, replace=False))
-    emb = network.embed(w, arch, np.stack([
-        normalise(resample(valid.segment(s), arch.n_points,
-                           np.random.default_rng([0, int(s)])), arch.norm_scale,
-                  arch.align_yaw)[0]
-        for s in rows]))
-    remap = -np.ones(len(valid), np.int64)
-    remap[rows] = np.arange(len(rows))
-    keep = (remap[vpairs[:, 0]] >= 0) & (remap[vpairs[:, 1]] >= 0)
-    key = valid.world_id[rows] * (int(valid.object_id.max()) + 1) + valid.object_id[rows]
-    key = np.where(valid.object_id[rows] > 0, key, -1 - np.arange(len(rows)))
-    return retrieval_metrics(emb, valid.frame[rows], remap[vpairs[keep]],
-                             world=valid.world_id[rows], coarse=valid.coarse[rows],
-                             ignore=key if ignore_same_object else None)
+    lr = getattr(args, "lr", 1e-3)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    rng = np.random.default_rng(args.seed)
+    state_path, best_path = work / "state.pt", work / "best.pt"
+    prog = {"step": 0, "minutes": 0.0, "hist": [], "checks": [], "best": -1.0,
+            "dropped": False, "last_eval": 0.0, "final": False}
+    if state_path.exists():
+        saved = torch.load(state_path, weights_only=False)
+        net.load_state_dict(saved["net"])
+        opt.load_state_dict(saved["opt"])
+        prog = saved["progress"]
+        rng.bit_generator.state = saved["numpy_rng"]
+        torch.set_rng_state(saved["torch_rng"])
+        print(f"resumed at step {prog['step']}, {prog['minutes']:.1f} training minutes",
+              flush=True)
+    if prog["step"] < args.steps and prog["minutes"] < args.minutes:
+        prog["final"] = False  # a larger budget continues a finished run
+    eval_every = getattr(args, "eval_every", 8.0)
+    ckpt_every = getattr(args, "checkpoint_every", 3.0)
+    sel = select_set() if select_set is not None else None
+    if sel is not None:
+        sel_pairs = true_pairs(sel, min_frame_gap=gap)
+        sel_rows = held_out_rows(sel, 1500, seed=1)
+    t0, base = time.time(), prog["minutes"]
+    last_save = t0
+
+    def minutes() -> float:
+        return base + (time.time() - t0) / 60
+
+    def save() -> None:
+        prog["minutes"] = minutes()
+        _save({"net": net.state_dict(), "opt": opt.state_dict(), "progress": prog,
+               "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()},
+              state_path)
+
+    def check() -> None:
+        if sel is None:
+            return
+        m = _score(net, sel, sel_pairs, sel_rows, gap)
+        prog["checks"].append({"step": prog["step"], "auc": round(m["auc"], 4),
+                               "acc25": round(m["accuracy_at_k"][25], 4),
+                               "minutes": round(minutes(), 1)})
+        print(f"select step {prog['step']}: auc {m['auc']:.4f} "
+              f"@25 {m['accuracy_at_k'][25]:.4f}", flush=True)
+        if m["auc"] > prog["best"]:
+            prog["best"] = m["auc"]
+            _save(net.state_dict(), best_path)
+
+    if prog["dropped"]:
+        for g in opt.param_groups:
+            g["lr"] = lr / 5
+    if not prog["checks"] and sel is not None:
+        check()  # the starting point (the --init weights) is a candidate too
+    while not prog["final"] and prog["step"] < args.steps and minutes() < args.minutes:
+        if not prog["dropped"] and minutes() > 0.7 * args.minutes:
+            for g in opt.param_groups:
+                g["lr"] = lr / 5
+            prog["dropped"] = True
+            print(f"step {prog['step']}: learning rate {lr / 5:g}", flush=True)
+        if minutes() - prog["last_eval"] >= eval_every:
+            check()
+            prog["last_eval"] = minutes()
+        net.train()
+        ab = sampler(args.batch, rng)
+        pts = np.stack([augment(train.segment(s), rng, norm_scale=net.arch.norm_scale,
+                                align_yaw=net.arch.align_yaw) for s in ab.ravel()])
+        idx = network.neighbour_index(pts, net.arch)
+        emb = net(torch.from_numpy(pts), idx).reshape(len(ab), 2, -1)
+        loss, trip, _ = wl_loss(emb[:, 0], emb[:, 1], train.coarse[ab[:, 0]],
+                                train.object_id[ab[:, 0]])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        prog["hist"].append((loss.item(), (trip > 0).float().mean().item()))
+        prog["step"] += 1
+        if prog["step"] % 20 == 0:
+            recent = np.mean(prog["hist"][-20:], axis=0)
+            print(f"step {prog['step']} loss {recent[0]:.4f} active {recent[1]:.2f} "
+                  f"{minutes():.1f} min", flush=True)
+        if time.time() - last_save >= ckpt_every * 60:
+            save()
+            last_save = time.time()
+    if not prog["final"]:
+        check()
+        prog["final"] = True
+    save()
+    log["steps"] = prog["step"]
+    log["training_minutes"] = round(prog["minutes"], 1)
+    log["final_loss"] = float(np.mean(prog["hist"][-50:], axis=0)[0]) if prog["hist"] else None
+    log["selection_checks"] = prog["checks"]
+    if sel is not None and best_path.exists():
+        net.load_state_dict(torch.load(best_path))
+        log["selected_step"] = max(prog["checks"], key=lambda c: c["auc"])["step"]
+
+
+def validation_name(weights: Path) -> Path:
+    """The validation json beside a weights file (``*_weights.npz``: ``*_validation.json``)."""
+    weights = Path(weights)
+    return weights.with_name(weights.stem.replace("weights", "validation") + ".json")
 
 
 def run(train: SegmentSet, valid_set, args, stages: set, start: float,
@@ -169,92 +279,44 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
     ``valid_set()`` gives the held-out segments the figures are reported on,
     ``select_set()`` (optional) the segments checkpoints are chosen on and
     ``extra_valid`` (name -> callable) further held-out sets reported beside them.
+    ``args.init`` (optional) starts from exported weights; ``args.compare``
+    (optional) weights scored beside the new ones on the selection and
+    validation sets at export, with the choice rule's verdict.
     """
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     work = Path(args.work)
-    pairs = true_pairs(train)
+    gap = int(getattr(args, "min_frame_gap", 10))
+    pairs = true_pairs(train, min_frame_gap=gap)
     sampler = PairSampler(pairs, train)
-    norm = float(args.norm_scale)
-    if norm < 0:  # the median RMS radius of the training segments, rounded to 0.1 m
-        rms = [normalise(train.segment(s))[1] for s in range(0, len(train), 5)]
-        norm = round(float(np.median(rms)), 1)
-    net = ESMNet(network.Arch(norm_scale=norm, align_yaw=bool(getattr(args, "align_yaw", False))))
+    init = getattr(args, "init", None)
+    if init is not None:
+        w0, arch0 = network.load_weights(init)
+        net = ESMNet(arch0)
+        net.load_numpy(w0)
+        norm = arch0.norm_scale
+    else:
+        norm = float(args.norm_scale)
+        if norm < 0:  # the median RMS radius of the training segments, rounded to 0.1 m
+            rms = [normalise(train.segment(s))[1] for s in range(0, len(train), 5)]
+            norm = round(float(np.median(rms)), 1)
+        net = ESMNet(network.Arch(norm_scale=norm,
+                                  align_yaw=bool(getattr(args, "align_yaw", False))))
     ckpt = work / "net.pt"
     log = {"train_segments": len(train), "train_pairs": int(len(pairs)),
            "train_objects_with_pairs": sampler.objects, "norm_scale": norm,
+           "min_frame_gap": gap, "init": None if init is None else Path(init).name,
            "classes": {COARSE_NAMES[c]: int((train.coarse == c).sum())
                        for c in np.unique(train.coarse)}}
     if "train" in stages:
-        lr = getattr(args, "lr", 1e-3)
-        opt = torch.optim.Adam(net.parameters(), lr=lr)
-        budget = args.minutes * 60
-        deadline = start + budget
-        t_train = time.time()
-        eval_every = getattr(args, "eval_every", 8.0) * 60
-        sel = select_set() if select_set is not None else None
-        if sel is not None:
-            sel_pairs = true_pairs(sel)
-            sel_rows = np.arange(len(sel))
-            if len(sel_rows) > 1500:
-                sel_rows = np.sort(np.random.default_rng(1).choice(len(sel), 1500,
-                                                                   replace=False))
-        best, next_eval, dropped, hist, checks = -1.0, time.time() + eval_every, False, [], []
-
-        def check(step: int) -> None:
-            nonlocal best
-            if sel is None:
-                return
-            m = _score(net, sel, sel_pairs, sel_rows)
-            checks.append({"step": step, "auc": round(m["auc"], 4),
-                           "acc25": round(m["accuracy_at_k"][25], 4)})
-            print(f"select step {step}: auc {m['auc']:.4f} @25 {m['accuracy_at_k'][25]:.4f}",
-                  flush=True)
-            if m["auc"] > best:
-                best = m["auc"]
-                torch.save(net.state_dict(), work / "best.pt")
-
-        for step in range(args.steps):
-            now = time.time()
-            if now > deadline:
-                break
-            if not dropped and now > t_train + 0.7 * (deadline - t_train):
-                for g in opt.param_groups:
-                    g["lr"] = lr / 5
-                dropped = True
-                print(f"step {step}: learning rate {lr / 5:g}", flush=True)
-            if now > next_eval:
-                check(step)
-                next_eval = time.time() + eval_every
-            net.train()
-            ab = sampler(args.batch, rng)
-            pts = np.stack([augment(train.segment(s), rng, norm_scale=norm,
-                                    align_yaw=net.arch.align_yaw) for s in ab.ravel()])
-            idx = network.neighbour_index(pts, net.arch)
-            emb = net(torch.from_numpy(pts), idx).reshape(len(ab), 2, -1)
-            loss, trip, dpos = wl_loss(emb[:, 0], emb[:, 1], train.coarse[ab[:, 0]],
-                                       train.object_id[ab[:, 0]])
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            hist.append((loss.item(), (trip > 0).float().mean().item()))
-            if step % 20 == 0:
-                recent = np.mean(hist[-20:], axis=0)
-                print(f"step {step} loss {recent[0]:.4f} active {recent[1]:.2f} "
-                      f"{(time.time() - start) / 60:.1f} min", flush=True)
-            if step % 100 == 99:
-                torch.save(net.state_dict(), ckpt)
-        check(len(hist))
-        log["steps"] = len(hist)
-        log["final_loss"] = float(np.mean(hist[-50:], axis=0)[0])
-        log["selection_checks"] = checks
-        if sel is not None:
-            net.load_state_dict(torch.load(work / "best.pt"))
-            log["selected_step"] = max(checks, key=lambda c: c["auc"])["step"]
-        torch.save(net.state_dict(), ckpt)
+        _train(net, train, sampler, args, work, select_set, gap, log)
+        _save(net.state_dict(), ckpt)
+        (work / "train_log.json").write_text(json.dumps(log, indent=2))
     else:
         net.load_state_dict(torch.load(ckpt))
+        if (work / "train_log.json").exists():
+            log.update(json.loads((work / "train_log.json").read_text()))
     if "quality" in stages:
         for p in net.parameters():
             p.requires_grad_(False)
@@ -263,7 +325,7 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
         rows = np.sort(rng.choice(len(train), min(len(train), 4000), replace=False))
         emb = embed_eval(net, train, rows)
         sub_pairs = pairs[np.isin(pairs[:, 0], rows) & np.isin(pairs[:, 1], rows)]
-        y = knn_labels(emb, train, rows, sub_pairs)
+        y = knn_labels(emb, train, rows, sub_pairs, gap=gap)
         opt = torch.optim.Adam([net.quality.weight, net.quality.bias], lr=1e-2)
         x_t, y_t = torch.from_numpy(emb), torch.from_numpy(y)
         for _ in range(args.quality_steps):
@@ -273,7 +335,7 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
             opt.step()
         log["quality_positive_rate"] = float(y.mean())
         log["quality_loss"] = float(loss.item())
-        torch.save(net.state_dict(), ckpt)
+        _save(net.state_dict(), ckpt)
     if "export" in stages:
         net.eval()
         out = Path(args.out) if args.out else network.WEIGHTS_FILE
@@ -282,23 +344,44 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
         np.savez(tmp, **weights)
         tmp.replace(out)
         w, arch = network.load_weights(out)
+        compare = getattr(args, "compare", None)
+        if compare is not None:
+            w_old, arch_old = network.load_weights(compare)
         sets = {"validation": valid_set, **(extra_valid or {})}
+        if select_set is not None:
+            sets["selection"] = select_set
         for name, make in sets.items():
             valid = make()
-            metrics = _held_out(w, arch, valid, np.random.default_rng(0))
+            metrics = _held_out(w, arch, valid, np.random.default_rng(0), gap=gap)
             entry = {k: v for k, v in metrics.items() if k != "roc"}
             entry["segments"] = len(valid)
-            entry["objects_with_pairs"] = PairSampler(true_pairs(valid), valid).objects
+            entry["objects_with_pairs"] = PairSampler(true_pairs(valid, min_frame_gap=gap),
+                                                      valid).objects
             loose = _held_out(w, arch, valid, np.random.default_rng(0),
-                              ignore_same_object=True)
+                              ignore_same_object=True, gap=gap)
             entry["same_object_ignored"] = {k: v for k, v in loose.items() if k != "roc"}
+            if compare is not None:
+                old = _held_out(w_old, arch_old, valid, np.random.default_rng(0), gap=gap)
+                entry["compared"] = {k: v for k, v in old.items() if k != "roc"}
+                entry["compared_roc"] = old["roc"]
             if name == "validation":
                 log["validation"] = entry
                 log["validation_roc"] = metrics["roc"]
             else:
                 log.setdefault("validation_extra", {})[name] = entry
+        if compare is not None:
+            log["compared_weights"] = {"file": Path(compare).name,
+                                       "sha256": network.sha256_of(compare)}
+            if "selection" in log.get("validation_extra", {}):
+                sel = log["validation_extra"]["selection"]
+                log["choice"] = {
+                    "rule": "use the new weights only if their segment-retrieval ROC AUC on "
+                            "the selection world beats the compared weights'",
+                    "auc_new": sel["auc"], "auc_compared": sel["compared"]["auc"],
+                    "use_new": bool(sel["auc"] > sel["compared"]["auc"])}
         log["sha256"] = network.sha256_of(out)
         log["minutes"] = round((time.time() - start) / 60, 1)
         (work / "validation.json").write_text(json.dumps(log, indent=2))
-        out.with_name("esm_validation.json").write_text(json.dumps(log, indent=2) + "\n")
-        print(json.dumps({k: v for k, v in log.items() if k != "validation_roc"}, indent=2))
+        validation_name(out).write_text(json.dumps(log, indent=2) + "\n")
+        print(json.dumps({k: v for k, v in log.items()
+                          if k not in ("validation_roc",)}, indent=2, default=str)[:4000])
