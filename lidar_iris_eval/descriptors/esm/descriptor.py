@@ -209,8 +209,11 @@ class ESM(Descriptor):
                                 input_filter=p.input_filter, odometry=p.odometry)
 
     def run_info(self) -> dict[str, Any]:
-        """The local maps (base class), the embedding-cache rule and its hit rate."""
+        """The local maps (base class), the weights file and its checksum, the
+        embedding-cache rule and its hit rate."""
         info = super().run_info()
+        info["weights"] = self.weights_path.name
+        info["weights_sha256"] = self.cache_token()
         if self.local_map:
             info["describe_rule"] = self.params.describe
             info["embedding_reuse_rate"] = (round(self._reused, 4) if self._reused is not None
@@ -250,11 +253,6 @@ class ESM(Descriptor):
         except OSError as err:
             raise LirisError(f"esm.weights={self.params.weights}",
                              f"cannot read ESM weights {path} ({err})") from None
-
-    def run_info(self) -> dict[str, Any]:
-        """The base keys plus the weights file and its checksum (metrics.json rows)."""
-        return {**super().run_info(), "weights": self.weights_path.name,
-                "weights_sha256": self.cache_token()}
 
     def describe(self, scan: Any) -> dict[str, np.ndarray]:
         return self.compute(scan)
