@@ -178,9 +178,9 @@ def test_kiss_icp_features_do_not_depend_on_the_gt_poses(short_sequence, tmp_pat
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     # chunks in a process pool see the poses of the one KISS-ICP run over the sequence
+    # (only the poses: ESM's segment tracking restarts per chunk, so embeddings may differ)
     c, _, _ = _features(short_sequence, "kiss-icp", workers=2, chunk_size=10)
-    for k in a:
-        np.testing.assert_array_equal(a[k], c[k], err_msg=k)
+    np.testing.assert_array_equal(a["pose"], c["pose"])
 
 
 @kiss

@@ -210,10 +210,9 @@ class ESM(Descriptor):
 
     def run_info(self) -> dict[str, Any]:
         """The local maps (base class), the weights file and its checksum, the
-        embedding-cache rule and its hit rate."""
-        info = super().run_info()
-        info["weights"] = self.weights_path.name
-        info["weights_sha256"] = self.cache_token()
+        embedding-cache rule and its hit rate (metrics.json rows)."""
+        info = {**super().run_info(), "weights": self.weights_path.name,
+                "weights_sha256": self.cache_token()}
         if self.local_map:
             info["describe_rule"] = self.params.describe
             info["embedding_reuse_rate"] = (round(self._reused, 4) if self._reused is not None
