@@ -282,8 +282,9 @@ def extract_many(
     with bar:
         for members, todo in groups.items():
             descs = [pending[i].descriptor for i in members]
-            if len(descs) == 1 and _reads_local_maps(descs[0]) and todo:
-                _estimate_odometry(seq, descs[0], progress)
+            for d in descs if todo else ():
+                if _reads_local_maps(d):
+                    _estimate_odometry(seq, d, progress)
             for (a, b), outputs in _compute_chunks(seq, descs, todo, workers, bar, executor):
                 for i, arrays in zip(members, outputs, strict=True):
                     plan = pending[i]

@@ -312,7 +312,10 @@ class ESM(Descriptor):
         emb = np.zeros((n, arch.fc[-1]), np.float32)
         q = np.zeros(n, np.float64)
         fresh = np.zeros(n, np.int8)
-        digests = [content_digest(seg_keys[s], pts[members[s]]) for s in range(n)]
+        # content digests only decide reuse under ``exact`` (tracking.py)
+        exact = self.params.describe == "exact"
+        digests = [content_digest(seg_keys[s], pts[members[s]]) if exact else b""
+                   for s in range(n)]
         for s in range(n):
             hit = self.tracker.lookup(ids[s], int(sizes[s]), digests[s])
             if hit is None:

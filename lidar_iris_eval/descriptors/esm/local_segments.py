@@ -70,20 +70,13 @@ def segment_local_map(world_points: np.ndarray, params: SegmentParams):
     resampled with the stream ``[seed, s]``.
     """
     pts = np.asarray(world_points, dtype=np.float64)
-    empty = (np.zeros((0, params.n_points, 3), np.float32), np.zeros((0, 3)),
-             np.zeros(0, np.int64))
-    if len(pts) == 0:
-        return empty
-    comp = euclidean_clusters(pts, params.radius)
-    counts = np.bincount(comp)
-    good = np.nonzero((counts >= params.min_points) & (counts <= params.max_points))[0]
-    if len(good) == 0:
-        return empty
-    order = np.argsort(comp, kind="stable")
-    bounds = np.concatenate([[0], np.cumsum(counts)])
+    members = local_map_clusters(pts, params)
+    if not members:
+        return (np.zeros((0, params.n_points, 3), np.float32), np.zeros((0, 3)),
+                np.zeros(0, np.int64))
     out, cents, sizes = [], [], []
-    for s, c in enumerate(good):
-        seg = pts[order[bounds[c]:bounds[c + 1]]]
+    for s, m in enumerate(members):
+        seg = pts[m]
         rng = np.random.default_rng([params.seed, s])
         normed, _ = normalise(resample(seg, params.n_points, rng), params.norm_scale,
                               params.align_yaw)

@@ -87,8 +87,6 @@ class SegmentTracker:
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     cache: dict = field(default_factory=dict)
     merges: list = field(default_factory=list)
-    described: int = 0
-    reused: int = 0
 
     def __post_init__(self) -> None:
         if self.describe not in DESCRIBE_RULES:
