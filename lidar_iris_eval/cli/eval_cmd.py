@@ -110,10 +110,8 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         raise LirisError(f"--workers {workers}", "must be at least 1")
     settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
     within = query_path is None and database_path is None and align_path is None
-    if odometry != "gt" and not within:
-        raise LirisError(f"--odometry {odometry}", "applies to within-sequence runs (a "
-                                                  "SEQUENCE or a plan of sequences)")
     if not within:
+        _within_sequence_odometry(odometry)
         from lidar_iris_eval.cli.sessions_eval import evaluate_sessions_cli
 
         evaluate_sessions_cli(sequence, query_path, database_path, align_path, protocols,
@@ -125,9 +123,7 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         from lidar_iris_eval.cli.sessions_plan import is_sessions_plan, run_sessions_plan
 
         if is_sessions_plan(plan):  # query/database pairs
-            if odometry != "gt":
-                raise LirisError(f"--odometry {odometry}", "applies to within-sequence runs "
-                                                          "(a SEQUENCE or a plan of sequences)")
+            _within_sequence_odometry(odometry)
             if protocols:
                 raise LirisError("--protocol", "does not apply to a plan of query/database "
                                                "pairs")
@@ -233,6 +229,13 @@ def print_loop_poses(run, loop_settings) -> None:
         for key in ("refine_note", "gt_pose_note"):
             if row.get(key):
                 click.echo(f"{row['descriptor']}: {row[key]}")
+
+
+def _within_sequence_odometry(odometry: str) -> None:
+    """Refuse an estimated odometry where local maps are not built (cross-session runs)."""
+    if odometry != "gt":
+        raise LirisError(f"--odometry {odometry}", "applies to within-sequence runs (a "
+                                                  "SEQUENCE or a plan of sequences)")
 
 
 def _evaluate_many(sequences, plan, protocols, descriptor_text, preset, params, sensor,
