@@ -299,7 +299,8 @@ def settings_from(settings: Settings | None = None, *, exclude=None, radius=None
 
 
 def protocol1_inputs(descriptors, positions: np.ndarray, settings: Settings | None,
-                     times: np.ndarray | None, values: dict):
+                     times: np.ndarray | None,
+                     values: dict) -> tuple[Settings, np.ndarray, np.ndarray, GroundTruth]:
     """What protocol 1 starts from: ``(settings, stacked descriptors, limits, ground truth)``.
 
     :func:`protocol1` and :func:`~lidar_iris_eval.evaluation.protocol2.protocols_1_and_2`
