@@ -98,16 +98,25 @@ def same_outcome(a: Localisation, b: Localisation) -> bool:
 
 
 def _scene(rng, nq: int, nt: int, *, grid: float | None, levels: int | None,
-           tied_quality: bool, seen_share: float = 2 / 3):
+           tied_quality: bool, seen_share: float = 2 / 3, line: bool = False):
     """A query local map partly seen again in a target map, plus clutter.
 
     ``grid``: centroids (and the pose's translation) on multiples of ``grid``
     with a quarter-turn rotation, so distances repeat and many differences sit
     on the threshold; ``levels``: embeddings quantised to that many values per
     dimension (tied k-NN distances); ``tied_quality``: all qualities 1;
-    ``seen_share``: the share of query segments that are in the target.
+    ``seen_share``: the share of query segments that are in the target;
+    ``line``: every centroid on the x axis at multiples of ``grid`` and half
+    the seen target segments moved by one ``grid`` step after the query saw
+    them, so that with ``threshold == grid`` most consistency decisions are
+    ``|d_target - d_query| == threshold`` (or one rounding from it).
     """
-    if grid is None:
+    if line:
+        t_world = np.zeros((nt, 3))
+        t_world[:, 0] = rng.integers(-40, 41, nt) * grid
+        T = np.diag([*(1.0, -1.0)[rng.integers(2)] * np.ones(2), 1.0, 1.0])
+        T[0, 3] = rng.integers(-3, 4) * grid
+    elif grid is None:
         t_world = rng.uniform(-25, 25, (nt, 3)) * [1, 1, 0.2]
         T = yaw_pose(rng.uniform(-180, 180), rng.uniform(-5, 5, 3))
     else:
@@ -121,8 +130,14 @@ def _scene(rng, nq: int, nt: int, *, grid: float | None, levels: int | None,
     q_cent = t_world[seen] @ T[:3, :3].T + T[:3, 3]
     q_emb = t_emb[seen] + (0 if levels is not None else rng.normal(0, 0.05, (len(seen), 16)))
     extra = nq - len(seen)  # segments of the query not in the target
-    q_cent = np.vstack([q_cent, rng.uniform(-25, 25, (extra, 3)) if grid is None else
-                        rng.integers(-8, 9, (extra, 3)) * grid])
+    if line:
+        clutter = np.zeros((extra, 3))
+        clutter[:, 0] = rng.integers(-40, 41, extra) * grid
+        t_world[seen[rng.random(len(seen)) < 0.5], 0] += grid
+    else:
+        clutter = (rng.uniform(-25, 25, (extra, 3)) if grid is None else
+                   rng.integers(-8, 9, (extra, 3)) * grid)
+    q_cent = np.vstack([q_cent, clutter])
     q_emb = np.vstack([q_emb, t_emb[rng.integers(nt, size=extra)]])  # look-alikes elsewhere
     if rng.random() < 0.5:  # duplicate centroids: a segment seen twice in the target
         t_world[rng.integers(nt)] = t_world[rng.integers(nt)]
@@ -138,13 +153,16 @@ def _scene(rng, nq: int, nt: int, *, grid: float | None, levels: int | None,
             t_ids, positions)
 
 
-CASES = [  # (grid, levels, tied_quality, threshold)
-    (None, None, False, 0.6),
-    (None, 3, True, 0.6),
-    (0.2, None, False, 0.6),  # multiples of 0.2: |d - d'| rounds to either side of 0.6
-    (0.2, 2, True, 0.6),
-    (1.0, 2, True, 1.0),  # integer distances: |d - d'| == 1.0 exactly
-    (0.5, None, True, 0.5),
+CASES = [  # (grid, levels, tied_quality, threshold, line)
+    (None, None, False, 0.6, False),
+    (None, 3, True, 0.6, False),
+    (0.2, None, False, 0.6, False),  # multiples of 0.2: |d - d'| rounds to either side of 0.6
+    (0.2, 2, True, 0.6, False),
+    (1.0, 2, True, 1.0, False),  # integer distances: |d - d'| == 1.0 exactly
+    (0.5, None, True, 0.5, False),
+    (1.0, None, False, 1.0, True),  # on a line: the threshold decides most pairs
+    (0.6, 3, True, 0.6, True),  # ... or one float32 rounding does
+    (0.5, None, True, 0.5, True),
 ]
 
 
@@ -163,7 +181,7 @@ def _exact_ties(args, knn: int, threshold: float) -> int:
 
 @pytest.mark.parametrize("case", range(len(CASES)))
 def test_localise_equals_the_dense_reference(case):
-    grid, levels, tied, threshold = CASES[case]
+    grid, levels, tied, threshold, line = CASES[case]
     rng = np.random.default_rng(100 + case)
     accepted = rejected = ties = 0
     for trial in range(12):
@@ -171,7 +189,7 @@ def test_localise_equals_the_dense_reference(case):
         knn = int(rng.choice([1, 3, 5, 25]))
         few = trial % 3 == 2  # few segments seen again: mostly rejected
         args = _scene(rng, nq, nt, grid=grid, levels=levels, tied_quality=tied,
-                      seen_share=0.1 if few else 2 / 3)
+                      seen_share=0.1 if few else 2 / 3, line=line)
         kw = dict(knn=knn, threshold=threshold,
                   min_consistent=6 if few else int(rng.choice([3, 4, 6])),
                   iterations=int(rng.choice([1, 7, 70, 300])),  # 70 > one seed block
