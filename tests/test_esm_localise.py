@@ -13,25 +13,53 @@ the threshold exactly or differ from it by one rounding.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
 from lidar_iris_eval.descriptors.esm.target_map import (
     Localisation,
     _centroid_distances,
+    _consistent_sets,
     _one_per_query,
     localise,
 )
 from lidar_iris_eval.matching.geometry import kabsch, yaw_pose
 
 
+def reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds) -> list:
+    """The dense consistency matrix and the greedy sets read from it (``_consistent_sets``)."""
+    src, dst = t_world[tb], q_cent[qa]
+    ds = np.linalg.norm((src[:, None] - src[None]).astype(np.float32), axis=2)
+    dd = np.linalg.norm((dst[:, None] - dst[None]).astype(np.float32), axis=2)
+    ok = np.abs(ds - dd) <= threshold
+    ok &= qa[:, None] != qa[None, :]
+    ok &= tb[:, None] != tb[None, :]
+    degree = ok.sum(1)
+    out = []
+    for seed in range(seeds):
+        if degree[seed] + 1 < min_consistent:
+            continue
+        members = [seed]
+        allowed = ok[seed].copy()
+        while allowed.any():
+            c = int(np.argmax(allowed))
+            members.append(c)
+            allowed &= ok[c]
+        if len(members) >= min_consistent:
+            out.append((seed, np.asarray(members)))
+    return out
+
+
 def reference_localise(q_emb, q_qual, q_cent, t_emb, t_qual, t_world, t_ids, positions, *,
                        knn: int, threshold: float, min_consistent: int, iterations: int,
                        frame_rule: str = "estimate", max_offset: float = 4.0) -> Localisation:
-    """The dense implementation: every pair's consistency, then the greedy sets."""
+    """The dense implementation ``localise`` replaced (its CPU-time split included)."""
     nq, nt = len(q_emb), len(t_emb)
     if nq == 0 or nt < 2:
         return Localisation(-1, np.full((4, 4), np.nan), 0, float("nan"), 0)
+    t0 = time.thread_time()
     k = min(knn, nt - 1)
     qe, te = q_emb.astype(np.float64), t_emb.astype(np.float64)
     d2 = (qe**2).sum(1)[:, None] + (te**2).sum(1)[None, :] - 2.0 * qe @ te.T
@@ -43,27 +71,11 @@ def reference_localise(q_emb, q_qual, q_cent, t_emb, t_qual, t_world, t_ids, pos
     order = np.lexsort((t_ids[tb], qa, dist, -prod))
     qa, tb = qa[order], tb[order]
     src, dst = t_world[tb], q_cent[qa]
-    ds = np.linalg.norm((src[:, None] - src[None]).astype(np.float32), axis=2)
-    dd = np.linalg.norm((dst[:, None] - dst[None]).astype(np.float32), axis=2)
-    ok = np.abs(ds - dd) <= threshold
-    ok &= qa[:, None] != qa[None, :]
-    ok &= tb[:, None] != tb[None, :]
-    degree = ok.sum(1)
+    tried = len(range(min(iterations, len(qa))))
+    sets = reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, tried)
+    t1 = time.thread_time()
     best = None
-    tried = 0
-    for seed in range(min(iterations, len(qa))):
-        tried += 1
-        if degree[seed] + 1 < min_consistent:
-            continue
-        members = [seed]
-        allowed = ok[seed].copy()
-        while allowed.any():
-            c = int(np.argmax(allowed))
-            members.append(c)
-            allowed &= ok[c]
-        if len(members) < min_consistent:
-            continue
-        m = np.asarray(members)
+    for seed, m in sets:
         T = kabsch(src[m], dst[m])
         resid = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
         inl = _one_per_query(resid, qa, threshold)
@@ -74,9 +86,10 @@ def reference_localise(q_emb, q_qual, q_cent, t_emb, t_qual, t_world, t_ids, pos
         score = (len(inl), -seed)
         if best is None or score > best[0]:
             best = (score, T, inl, resid)
+    sec = (t1 - t0, time.thread_time() - t1)
     if best is None or best[0][0] < min_consistent:
         return Localisation(-1, np.full((4, 4), np.nan), 0 if best is None else best[0][0],
-                            float("nan"), tried)
+                            float("nan"), tried, sec)
     _, T, inl, resid = best
     if frame_rule == "segments":
         total = np.linalg.norm(positions[:, None, :] - src[inl][None], axis=2).sum(1)
@@ -86,8 +99,14 @@ def reference_localise(q_emb, q_qual, q_cent, t_emb, t_qual, t_world, t_ids, pos
         offset = np.linalg.norm(positions - where, axis=1)
         frame = int(np.argmin(offset))
         if offset[frame] > max_offset:
-            return Localisation(-1, np.full((4, 4), np.nan), len(inl), float("nan"), tried)
-    return Localisation(frame, T, len(inl), float(resid[inl].mean()), tried)
+            return Localisation(-1, np.full((4, 4), np.nan), len(inl), float("nan"), tried, sec)
+    return Localisation(frame, T, len(inl), float(resid[inl].mean()), tried, sec)
+
+
+def same_sets(a: list, b: list) -> bool:
+    """The same seeds with the same members in the same order."""
+    return len(a) == len(b) and all(sa == sb and np.array_equal(ma, mb)
+                                    for (sa, ma), (sb, mb) in zip(a, b, strict=True))
 
 
 def same_outcome(a: Localisation, b: Localisation) -> bool:
@@ -234,3 +253,26 @@ def test_centroid_distances_are_the_dense_norm_bit_for_bit():
     assert (other != np.linalg.norm(d, axis=1)).any()
     assert np.array_equal(_centroid_distances(d.astype(np.float64), 0.0),
                           np.linalg.norm(d, axis=1))
+
+
+@pytest.mark.parametrize("grid", [None, 0.6, 1.0])
+def test_consistent_sets_equal_the_dense_sets(grid):
+    """Every seed's set, winning or not, over correspondence lists longer than a seed block."""
+    rng = np.random.default_rng(11)
+    for _ in range(6):
+        nq, nt = int(rng.integers(5, 25)), int(rng.integers(5, 60))
+        n = int(rng.integers(1, 400))
+        qa, tb = rng.integers(nq, size=n), rng.integers(nt, size=n)
+        if grid is None:
+            q_cent, t_world = rng.normal(size=(nq, 3)) * 5, rng.normal(size=(nt, 3)) * 5
+            threshold = 0.6
+        else:  # on a line, the target a shifted copy: |d - d'| on the threshold
+            q_cent, t_world = np.zeros((nq, 3)), np.zeros((nt, 3))
+            q_cent[:, 0] = rng.integers(-20, 21, nq) * grid
+            t_world[:, 0] = q_cent[rng.integers(nq, size=nt), 0] + rng.integers(2, size=nt) * grid
+            threshold = grid
+        for seeds, min_consistent in [(n, 3), (min(n, 300), 6), (min(n, 70), 1)]:
+            new = _consistent_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds)
+            ref = reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds)
+            assert same_sets(new, ref)
+            assert len(ref) > 0 or min_consistent > 1
