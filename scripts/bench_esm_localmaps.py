@@ -9,7 +9,8 @@
 this thread (one core) for the local-map update, segmentation (clustering and
 id tracking), description (resampling and the network, for the segments the
 rule re-describes), matching (k-NN over the target map + centroid
-consistency) and pose estimation (consistent sets, rigid fits); prints medians
+consistency, formed as the consistent sets grow) and pose estimation (rigid
+fits); prints medians
 and the 90th percentile as JSON, for the rule ``--describe`` (default
 ``growth``) and the uncached baseline ``--baseline`` (default ``all``) run
 frame by frame over the same local maps in the same process (so both see the

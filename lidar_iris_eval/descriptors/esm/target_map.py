@@ -20,7 +20,11 @@ consistent set is grown greedily (in the same order; a set never uses a query
 or a target segment twice); a set of at least ``min_consistent`` (SegMap's 6)
 gives a rigid fit (Kabsch) whose inliers (residual <= threshold, one per query
 segment) are counted; the fit with the most inliers wins (ties: the earlier
-seed). The matched frame (``frame_rule``):
+seed). Consistency is evaluated only where the sets read it
+(:func:`_consistent_sets`: the seeds' rows, and a member's row over the
+correspondences still allowed), never as the whole ``n x n`` matrix, with the
+same float32 distances and comparisons, so the decisions are the dense
+matrix's (tests/test_esm_localise.py). The matched frame (``frame_rule``):
 
 * ``estimate`` (default): the database frame whose odometry position is nearest
   the query's position the fit estimates in the world; rejected when that
@@ -94,7 +98,9 @@ class Localisation:
     inliers: int
     residual: float  # mean inlier residual (m), NaN when rejected
     hypotheses: int
-    seconds: tuple = (0.0, 0.0)  # CPU time of (matching: k-NN + consistency, pose estimation)
+    #: CPU time of (matching: k-NN + consistency, as the consistent sets grow; pose
+    #: estimation: the rigid fits and the frame)
+    seconds: tuple = (0.0, 0.0)
 
 
 def _rejected(hyp: int = 0, inliers: int = 0, seconds=(0.0, 0.0)) -> Localisation:
