@@ -47,7 +47,7 @@ from tqdm import tqdm
 from lidar_iris_eval import __version__
 from lidar_iris_eval.cache import CacheKey, DescriptorCache, input_fingerprint
 from lidar_iris_eval.config import params_dict
-from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.descriptors.base import Descriptor, reads_local_maps
 from lidar_iris_eval.descriptors.features import RaggedFeatures
 from lidar_iris_eval.errors import LirisError, option
 
@@ -111,7 +111,7 @@ def descriptor_code_hash(descriptor: Descriptor) -> str:
     module = sys.modules.get(type(descriptor).__module__)
     own = getattr(module, "__file__", None)
     code = _source_hash(str(Path(own).resolve()) if own else "")
-    if "local_map" in descriptor.inputs:  # the local maps it reads are built by our code
+    if reads_local_maps(descriptor):  # the local maps it reads are built by our code
         from lidar_iris_eval.localmaps.extraction import local_map_code_hash
 
         code = f"{code}+{local_map_code_hash()}"
@@ -169,7 +169,7 @@ def _inputs_key(seq, descriptor: Descriptor) -> str:
     reading local maps, what its poses depend on (odometry.odometry_key: the GT poses'
     hash with ``gt``, KISS-ICP's version and settings with ``kiss-icp``)."""
     key = input_fingerprint(seq, descriptor.inputs)
-    if _reads_local_maps(descriptor) and hasattr(descriptor, "local_map_settings"):
+    if reads_local_maps(descriptor) and hasattr(descriptor, "local_map_settings"):
         from lidar_iris_eval.localmaps.odometry import odometry_key
 
         odometry = odometry_key(seq, descriptor.local_map_settings().odometry)
@@ -263,7 +263,7 @@ def extract_many(
     needs: dict[tuple[int, int], list[int]] = {}
     groups: dict[tuple[int, ...], list[tuple[int, int]]] = {}
     for index, plan in enumerate(pending):
-        if _reads_local_maps(plan.descriptor):
+        if reads_local_maps(plan.descriptor):
             groups[(index,)] = list(plan.todo)
             continue
         for r in plan.todo:
@@ -283,7 +283,7 @@ def extract_many(
         for members, todo in groups.items():
             descs = [pending[i].descriptor for i in members]
             for d in descs if todo else ():
-                if _reads_local_maps(d):
+                if reads_local_maps(d):
                     _estimate_odometry(seq, d, progress)
             for (a, b), outputs in _compute_chunks(seq, descs, todo, workers, bar, executor):
                 for i, arrays in zip(members, outputs, strict=True):
@@ -478,7 +478,7 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
     wants = [d.wants_scan() for d in descriptors]
     i, name = a, descriptors[0].name if descriptors else "descriptor"
     try:
-        if len(descriptors) == 1 and _reads_local_maps(descriptors[0]):
+        if len(descriptors) == 1 and reads_local_maps(descriptors[0]):
             from lidar_iris_eval.localmaps.extraction import describe_local_maps
 
             outputs[0] = describe_local_maps(seq, descriptors[0], a, b, extract_s[0], read_s,
@@ -520,11 +520,6 @@ def _estimate_odometry(seq, descriptor, progress: bool) -> None:
         from lidar_iris_eval.localmaps.odometry import estimate_odometry
 
         estimate_odometry(seq, descriptor.local_map_settings().odometry, progress)
-
-
-def _reads_local_maps(descriptor) -> bool:
-    """True for a method that declares the ``local_map`` input (built from its window)."""
-    return "local_map" in descriptor.inputs
 
 
 def _pack(descriptor, outputs: list, extract_s: np.ndarray, read_s: np.ndarray) -> dict:

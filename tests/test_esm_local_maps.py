@@ -28,6 +28,29 @@ def test_target_lifetimes_replace_recent_and_keep_old_views():
     assert alive[1] == inf and alive[2] == -1 and alive[3] == inf
 
 
+def test_target_lifetimes_largest_keeps_the_largest_recent_view():
+    # one object seen by frames 0..3 (sizes grow, then shrink as its scans leave the
+    # window), revisited at frame 9; a second object only at frame 2
+    world = np.array([[0.0, 0, 0], [0.3, 0, 0], [0.6, 0, 0], [20.0, 0, 0], [0.9, 0, 0],
+                      [0.2, 0, 0]])
+    frame_of = np.array([0, 1, 2, 2, 3, 9])
+    sizes = np.array([100, 300, 250, 50, 120, 900])
+    inf = np.iinfo(np.int64).max
+    latest = target_lifetimes(world, frame_of, 10, dedup=2.0, recent=3)
+    # latest: each newer view replaces the previous one; the frame-3 view (120 voxels) stays
+    assert latest.tolist() == [1, 2, 3, inf, inf, -1]
+    largest = target_lifetimes(world, frame_of, 10, dedup=2.0, recent=3, sizes=sizes,
+                               keep="largest")
+    # largest: 300 replaces 100 at frame 1; 250 (frame 2) and 120 (frame 3) are smaller and
+    # never enter; the 300-voxel view stays; at frame 9 it is old (1 <= 9 - 3): a revisit
+    # keeps it whatever the new view's size
+    assert largest.tolist() == [1, inf, -1, inf, -1, -1]
+    with pytest.raises(ValueError):
+        target_lifetimes(world, frame_of, 10, dedup=2.0, recent=3, keep="largest")
+    with pytest.raises(ValueError):
+        target_lifetimes(world, frame_of, 10, dedup=2.0, recent=3, keep="first")
+
+
 def _scene(seed=0):
     rng = np.random.default_rng(seed)
     world = rng.uniform(-30, 30, (40, 3)) * [1, 1, 0.1]

@@ -65,7 +65,9 @@ def check_odometry_file(path: Path | None, descriptors) -> None:
     """A pose file as ``--odometry`` with a method that reads local maps: one error line."""
     if path is None:
         return
-    reads = [d.name for d in descriptors if "local_map" in getattr(d, "inputs", ())]
+    from lidar_iris_eval.descriptors.base import reads_local_maps
+
+    reads = [d.name for d in descriptors if reads_local_maps(d)]
     if reads:
         raise LirisError(f"--odometry {path}", f"{', '.join(reads)} build local maps from "
                          "gt or kiss-icp poses; a pose file sets only the .g2o vertices of "

@@ -64,6 +64,17 @@ KNOWN_INPUTS = frozenset({"points", "intensity", "labels", "objects", "local_map
 BUILT_INPUTS = frozenset({"local_map"})
 
 
+def reads_local_maps(descriptor: Any) -> bool:
+    """True for a method that declares the ``local_map`` input.
+
+    The one test of "this method reads local maps": the extraction pipeline
+    (cache key, code hash, odometry), :meth:`Descriptor.run_info` and the CLI's
+    ``--odometry`` check all ask it, so they cannot disagree. An object without
+    ``inputs`` (not a :class:`Descriptor`) reads none.
+    """
+    return "local_map" in getattr(descriptor, "inputs", ())
+
+
 @dataclass(frozen=True)
 class Verification:
     """Result of verifying ``k`` candidates of one query.
@@ -164,7 +175,7 @@ class Descriptor(abc.ABC):
         a method ran on; called after matching. A method that reads local maps
         reports what built them (odometry ``gt`` is an oracle).
         """
-        if "local_map" in self.inputs and hasattr(self, "local_map_settings"):
+        if reads_local_maps(self) and hasattr(self, "local_map_settings"):
             lm = self.local_map_settings()
             return {"local_map_window": lm.window, "odometry": lm.odometry,
                     "input_filter": lm.input_filter}

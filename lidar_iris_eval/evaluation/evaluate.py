@@ -68,6 +68,15 @@ def host_info() -> dict[str, Any]:
             "load_average_1_5_15min": [round(v, 2) for v in os.getloadavg()]}
 
 
+def run_header(run: Any, config: dict) -> dict[str, Any]:
+    """The fields that open every metrics.json header, in this order: version,
+    when the run was made, how long it took, the host (see :func:`host_info`)
+    and the sequence. A run of one sequence and a cross-session run both start
+    here, so a reader finds them under the same names."""
+    return {"version": __version__, "created": run.created, "wall_s": run.wall_s,
+            "host": host_info(), "sequence": config["sequence"]}
+
+
 @dataclass(frozen=True)
 class DescriptorResult:
     """Everything computed for one descriptor."""
@@ -137,11 +146,7 @@ class Evaluation:
         """The metrics.json header: version, host, sequence and every convention."""
         config = self.config() if config is None else config
         return {
-            "version": __version__,
-            "created": self.created,
-            "wall_s": self.wall_s,
-            "host": host_info(),
-            "sequence": config["sequence"],
+            **run_header(self, config),
             "conventions": {
                 "radius": config["radius"],
                 "exclude": config["exclude"]["value"],

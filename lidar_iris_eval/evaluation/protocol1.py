@@ -298,6 +298,22 @@ def settings_from(settings: Settings | None = None, *, exclude=None, radius=None
     return base.replace(**values) if values else base
 
 
+def protocol1_inputs(descriptors, positions: np.ndarray, settings: Settings | None,
+                     times: np.ndarray | None,
+                     values: dict) -> tuple[Settings, np.ndarray, np.ndarray, GroundTruth]:
+    """What protocol 1 starts from: ``(settings, stacked descriptors, limits, ground truth)``.
+
+    :func:`protocol1` and :func:`~lidar_iris_eval.evaluation.protocol2.protocols_1_and_2`
+    both begin here, so their conventions, per-query database limits and
+    ground truth cannot drift apart. ``values`` are the keyword overrides of
+    :func:`settings_from`.
+    """
+    settings = settings_from(settings, **values)
+    descriptors = stacked_descriptors(descriptors, positions)
+    limits = database_limits(len(positions), settings, times)
+    return settings, descriptors, limits, ground_truth_for(positions, settings, limits=limits)
+
+
 def match_protocol1(descriptor: Descriptor, descriptors, limits: np.ndarray,
                     settings: Settings, progress: Callable[[int], object] | None = None,
                     executor=None) -> BestMatches:
@@ -341,9 +357,7 @@ def protocol1(
     and verification instead of the exhaustive search; two-stage methods
     always do, with ``K`` defaulting to ``descriptor.default_candidates()``.
     """
-    settings = settings_from(settings, **values)
-    descriptors = stacked_descriptors(descriptors, positions)
-    limits = database_limits(len(positions), settings, times)
-    gt = ground_truth_for(positions, settings, limits=limits)
+    settings, descriptors, limits, gt = protocol1_inputs(descriptors, positions, settings,
+                                                         times, values)
     matches = match_protocol1(descriptor, descriptors, limits, settings, progress, executor)
     return score_protocol1(matches, positions, gt, settings, forward, lidar_poses)

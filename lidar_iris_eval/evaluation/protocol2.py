@@ -21,15 +21,11 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.evaluation.ground_truth import (
-    GroundTruth,
-    compute_ground_truth,
-    database_limits,
-    ground_truth_for,
-)
+from lidar_iris_eval.evaluation.ground_truth import GroundTruth, compute_ground_truth
 from lidar_iris_eval.evaluation.metrics import PRCurve, pr_curve, summarize
 from lidar_iris_eval.evaluation.protocol1 import (
     Protocol1Result,
+    protocol1_inputs,
     score_protocol1,
     settings_from,
     stacked_descriptors,
@@ -170,10 +166,8 @@ def protocols_1_and_2(
     retrieval passes instead (``candidates`` = K, default
     ``descriptor.default_candidates()``). Returns ``(Protocol1Result, Protocol2Result)``.
     """
-    s = settings_from(settings, **values)
-    descriptors = stacked_descriptors(descriptors, positions)
-    limits = database_limits(len(positions), s, times)
-    gt1 = ground_truth_for(positions, s, limits=limits)
+    s, descriptors, limits, gt1 = protocol1_inputs(descriptors, positions, settings, times,
+                                                   values)
     gt2 = gt1 if s.standard else compute_ground_truth(positions, s.radius, 1, s.distance,
                                                       s.pose_frame)
     if descriptor.two_stage:

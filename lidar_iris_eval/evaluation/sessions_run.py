@@ -35,7 +35,7 @@ from lidar_iris_eval.evaluation.cross_session import (
     cross_positives,
     evaluate_sessions,
 )
-from lidar_iris_eval.evaluation.evaluate import host_info
+from lidar_iris_eval.evaluation.evaluate import run_header
 from lidar_iris_eval.evaluation.ground_truth import gt_coordinates
 from lidar_iris_eval.evaluation.metrics import SUMMARY_KEYS
 from lidar_iris_eval.evaluation.ranking import RANKING_DEFINITION
@@ -104,11 +104,7 @@ class SessionsEvaluation:
         s = self.settings
         op = "<=" if s.inclusive_radius else "<"
         return {
-            "version": __version__,
-            "created": self.created,
-            "wall_s": self.wall_s,
-            "host": host_info(),
-            "sequence": config["sequence"],
+            **run_header(self, config),
             "database": config["database"],
             "conventions": {
                 "kind": PROTOCOL,

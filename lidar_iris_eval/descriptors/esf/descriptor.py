@@ -254,16 +254,17 @@ def _triangle_geometry(p1, p2, p3):
     return np.stack([a, b, c], axis=1), heron, angles
 
 
-def sample_triangles(points: np.ndarray, samples: int, rng: np.random.Generator):
-    """Draw ``samples`` valid triplets, redrawing the ones PCL would reject.
+def _draw_batches(points: np.ndarray, samples: int, rng: np.random.Generator):
+    """Draw batches of triplets until ``samples`` are valid, redrawing as PCL would.
 
-    Returns ``(idx (S, 3), sides (S, 3), heron (S,), angle_bins (S, 3) int64)``,
-    in draw order. The geometry of each batch is computed once and kept for
-    the accepted triplets (element-wise float32 maths, so the values equal
-    :func:`sample_triangles_previous`, which recomputed them: tested bitwise).
+    Yields ``(idx, sides, heron, angles, ok)`` per batch, ``ok`` marking the
+    triplets PCL accepts (three distinct points, area above :data:`MIN_HERON`,
+    finite angles). Both routes of :func:`sample_triangles` draw through here,
+    so they consume the generator identically and keep the same triplets; each
+    keeps what it needs of a batch. Raises the one error line once
+    ``_MAX_DRAWS_PER_SAMPLE * samples`` draws have not found enough.
     """
     n = len(points)
-    kept: list[tuple[np.ndarray, ...]] = []
     have = drawn = 0
     while have < samples:
         if drawn >= _MAX_DRAWS_PER_SAMPLE * samples:
@@ -279,8 +280,20 @@ def sample_triangles(points: np.ndarray, samples: int, rng: np.random.Generator)
         ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])
         ok &= heron > MIN_HERON
         ok &= np.isfinite(angles).all(axis=1)
-        kept.append((idx[ok], sides[ok], heron[ok], angles[ok]))
+        yield idx, sides, heron, angles, ok
         have += int(ok.sum())
+
+
+def sample_triangles(points: np.ndarray, samples: int, rng: np.random.Generator):
+    """Draw ``samples`` valid triplets, redrawing the ones PCL would reject.
+
+    Returns ``(idx (S, 3), sides (S, 3), heron (S,), angle_bins (S, 3) int64)``,
+    in draw order. The geometry of each batch is computed once and kept for
+    the accepted triplets (element-wise float32 maths, so the values equal
+    :func:`sample_triangles_previous`, which recomputed them: tested bitwise).
+    """
+    kept = [(idx[ok], sides[ok], heron[ok], angles[ok])
+            for idx, sides, heron, angles, ok in _draw_batches(points, samples, rng)]
     idx, sides, heron, angles = (np.concatenate([k[f] for k in kept])[:samples]
                                  for f in range(4))
     return idx, sides, heron, angles.astype(np.int64)
@@ -290,27 +303,10 @@ def sample_triangles_previous(points: np.ndarray, samples: int, rng: np.random.G
     """The previous route of :func:`sample_triangles` (geometry recomputed for the kept).
 
     Returns ``(idx (S, 3), sides (S, 3), heron (S,), angle_bins (S, 3) int64)``,
-    in draw order.
+    in draw order. Kept as the benchmark's baseline (scripts/bench_extraction.py):
+    it keeps only the indices of each batch, as it always did.
     """
-    n = len(points)
-    kept: list[np.ndarray] = []
-    have = drawn = 0
-    while have < samples:
-        if drawn >= _MAX_DRAWS_PER_SAMPLE * samples:
-            raise LirisError(
-                "points",
-                f"ESF found only {have} of {samples} non-degenerate triangles in "
-                f"{drawn} draws; the points are (nearly) coincident or collinear",
-            )
-        batch = max(1024, int(1.1 * (samples - have)))
-        idx = rng.integers(0, n, size=(batch, 3))
-        drawn += batch
-        _, heron, angles = _triangle_geometry(*(points[idx[:, j]] for j in range(3)))
-        ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])
-        ok &= heron > MIN_HERON
-        ok &= np.isfinite(angles).all(axis=1)
-        kept.append(idx[ok])
-        have += int(ok.sum())
+    kept = [idx[ok] for idx, _, _, _, ok in _draw_batches(points, samples, rng)]
     idx = np.concatenate(kept)[:samples]
     sides, heron, angles = _triangle_geometry(*(points[idx[:, j]] for j in range(3)))
     return idx, sides, heron, angles.astype(np.int64)

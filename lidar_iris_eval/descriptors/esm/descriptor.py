@@ -52,7 +52,12 @@ from lidar_iris_eval.descriptors.base import Descriptor, Verification
 from lidar_iris_eval.descriptors.esm import network
 from lidar_iris_eval.descriptors.esm.local_segments import local_map_clusters, sample_segment
 from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams, segment_scan
-from lidar_iris_eval.descriptors.esm.target_map import Localisation, localise, target_lifetimes
+from lidar_iris_eval.descriptors.esm.target_map import (
+    TARGET_VIEWS,
+    Localisation,
+    localise,
+    target_lifetimes,
+)
 from lidar_iris_eval.descriptors.esm.tracking import DESCRIBE_RULES, SegmentTracker, content_digest
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.matching.geometry import prosac_rigid
@@ -91,6 +96,7 @@ class ESMParams:
     odometry: str = "gt"  # the poses that place scans: "gt" or "kiss-icp"
     map_radius: float = 50.0  # the local map's cylinder (m)
     dedup: float = 2.0  # target-map duplicate radius (m)
+    target_view: str = "latest"  # which recent view of a segment the target keeps (target_map.py)
     consistency: float = 0.6  # centroid-consistency / inlier threshold (m)
     min_consistent: int = 6  # SegMap's minimum cluster size on accumulated maps
     min_target: int = 50  # SegMap matches only once the target holds this many segments
@@ -108,6 +114,9 @@ class ESMParams:
         if self.frame_rule not in ("estimate", "segments"):
             raise LirisError("esm.frame_rule", "must be 'estimate' or 'segments', "
                                                f"got {self.frame_rule!r}")
+        if self.target_view not in TARGET_VIEWS:
+            raise LirisError("esm.target_view", f"must be one of {', '.join(TARGET_VIEWS)}, "
+                                                f"got {self.target_view!r}")
         if self.describe not in DESCRIBE_RULES:
             raise LirisError("esm.describe", f"must be one of {', '.join(DESCRIBE_RULES)}, "
                                              f"got {self.describe!r}")
@@ -370,7 +379,8 @@ class ESM(Descriptor):
             db.world = flat("world", np.float64, 3)
             db.poses = flat("pose", np.float64, 16).reshape(-1, 4, 4)
             db.alive_until = target_lifetimes(db.world, db.frame_of, n, self.params.dedup,
-                                              self.window)
+                                              self.window, flat("sizes", np.int64, 1)[:, 0],
+                                              self.params.target_view)
         return db
 
     def localisation(self, db: ESMDatabase, query: int, n_allowed: int) -> Localisation:

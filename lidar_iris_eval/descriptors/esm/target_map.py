@@ -5,9 +5,21 @@ the segments of each frame's local map enter the target in frame order; a new
 segment whose centroid is within ``dedup`` (2 m) of a target segment either
 replaces it (the target segment was seen recently: fewer than ``window``
 frames earlier, SegMap's 60 s) or is dropped (an old segment: a revisit keeps
-the first view). :func:`target_lifetimes` turns that process into, per
-segment, the range of database sizes it is alive for, so the target for "the
-frames ``[0, n)``" is one mask and does not depend on the order queries ask.
+the first view). Which recent view stays (``keep``):
+
+* ``latest``: every newer view replaces (SegMap's rule as written);
+* ``largest``: a newer view replaces only when it holds at least as many
+  voxels. SegMap's local map is the 50 m cylinder alone, so a segment's
+  voxels only grow while it is in range and its latest view is also its
+  largest. Our local map also drops scans older than the window W = E, so a
+  segment's latest view is the one built from the scans that saw it leave,
+  far behind (median 40-60 m on ``small-mixed``): ``largest`` keeps what
+  SegMap's rule keeps in SegMap's own setting (docs/esm.md, "Which view the
+  target keeps").
+
+:func:`target_lifetimes` turns that process into, per segment, the range of
+database sizes it is alive for, so the target for "the frames ``[0, n)``" is
+one mask and does not depend on the order queries ask.
 
 **Verification** (:func:`localise`): per query segment its ``K = min(knn, N - 1)``
 nearest target segments (squared L2 in the 16-d embedding); the
@@ -48,16 +60,25 @@ from scipy.spatial import cKDTree
 
 from lidar_iris_eval.matching.geometry import kabsch
 
+#: which recent view of a segment the target map keeps (module docstring)
+TARGET_VIEWS = ("latest", "largest")
+
 
 def target_lifetimes(world: np.ndarray, frame_of: np.ndarray, n_frames: int, dedup: float,
-                     recent: int) -> np.ndarray:
+                     recent: int, sizes: np.ndarray | None = None,
+                     keep: str = "latest") -> np.ndarray:
     """Per segment the last database size ``n`` it is in the target for (``-1``: never).
 
     Segment ``s`` of frame ``f`` is in the target of the frames ``[0, n)`` when
     ``f < n <= alive_until[s]``. Frame ``f``'s segments are added when the
     database grows to ``f + 1`` frames; a target segment replaced by frame
-    ``k`` is alive until ``n = k``.
+    ``k`` is alive until ``n = k``. ``keep`` is ``"latest"`` or ``"largest"``
+    (module docstring); ``"largest"`` needs ``sizes``, the voxels per segment.
     """
+    if keep not in TARGET_VIEWS:
+        raise ValueError(f"keep must be one of {TARGET_VIEWS}, got {keep!r}")
+    if keep == "largest" and (sizes is None or len(sizes) != len(frame_of)):
+        raise ValueError("keep='largest' needs one size per segment")
     inf = np.iinfo(np.int64).max
     alive_until = np.full(len(frame_of), inf, np.int64)
     starts = np.searchsorted(frame_of, np.arange(n_frames + 1))
@@ -76,7 +97,10 @@ def target_lifetimes(world: np.ndarray, frame_of: np.ndarray, n_frames: int, ded
                 for h in sorted(hits):
                     old = int(alive_arr[h])
                     if frame_of[old] > f - recent:
-                        drop_old.add(old)  # seen recently: the newer view replaces it
+                        if keep == "largest" and sizes[new[a]] < sizes[old]:
+                            keep_new[a] = False  # a smaller recent view: the larger stays
+                        else:
+                            drop_old.add(old)  # seen recently: the newer view replaces it
                     else:
                         keep_new[a] = False  # a revisit: the old view stays
             for old in drop_old:

@@ -186,26 +186,18 @@ def voxel_downsample(points: np.ndarray, leaf: float) -> np.ndarray:
 
     Returns
     -------
-    (V, 3) float32 centroids, ordered by voxel (x index, then y, then z).
+    (V, 3) float32 centroids, ordered by voxel (x index, then y, then z); an
+    empty cloud gives ``(0, 3)`` (the reference's answer).
     """
-    if len(points) == 0:
-        return np.empty((0, 3), dtype=np.float32)
-    out = voxel.voxel_centroids(points, leaf)
+    out = voxel.voxel_centroids(points, leaf) if len(points) else None
     return voxel_downsample_numpy(points, leaf) if out is None else out
 
 
 def voxel_downsample_numpy(points: np.ndarray, leaf: float) -> np.ndarray:
     """Sort-based NumPy voxel grid: the reference of :func:`voxel_downsample`.
 
-    Parameters
-    ----------
-    points : (N, 3) float32
-    leaf : float
-        Voxel edge in metres; faces lie at integer multiples of ``leaf``.
-
-    Returns
-    -------
-    (V, 3) float32 centroids, ordered by voxel (x index, then y, then z).
+    Same parameters and result as :func:`voxel_downsample`, which it equals
+    bitwise.
     """
     if len(points) == 0:
         return np.empty((0, 3), dtype=np.float32)

@@ -247,6 +247,20 @@ def list_files(folder: Path, suffix: str, what: str) -> list[Path]:
     return sorted(files, key=_natural_key)
 
 
+def list_by_time(folder: Path, suffix: str, what: str,
+                 stamps: Callable[[list[Path]], np.ndarray]) -> tuple[list[Path], np.ndarray]:
+    """:func:`list_files` in time order: ``(files, seconds)``, sorted by ``stamps(files)``.
+
+    For readers whose file names are the scans' times (Newer College,
+    Wild-Places): the natural order of names need not be the time order, so
+    the files are sorted by their stamps (stable: equal stamps keep name order).
+    """
+    files = list_files(folder, suffix, what)
+    times = stamps(files)
+    order = np.argsort(times, kind="stable")
+    return pick(files, order), times[order]
+
+
 def _natural_key(path: Path):
     import re
 

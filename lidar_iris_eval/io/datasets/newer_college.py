@@ -18,7 +18,7 @@ from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.io.datasets.base import (
     build,
     check_options,
-    list_files,
+    list_by_time,
     match_scans,
     pick,
     quat_xyzw,
@@ -52,10 +52,9 @@ def open_newer_college(path: Path, poses=None, calib=None, tolerance: float = TO
     """Open a Newer College 2020 sequence root (or its ``raw_format/ouster_scan``)."""
     check_options("newer-college", {**options, **({"calib": calib} if calib else {})})
     root = path.parent.parent if path.name == "ouster_scan" else path
-    scans = list_files(root / "raw_format" / "ouster_scan", ".pcd", "Newer College ouster_scan")
-    times = np.array([_stamp(p) for p in scans])
-    order = np.argsort(times, kind="stable")
-    scans, times = pick(scans, order), times[order]
+    scans, times = list_by_time(root / "raw_format" / "ouster_scan", ".pcd",
+                                "Newer College ouster_scan",
+                                lambda files: np.array([_stamp(p) for p in files]))
     pose_path = Path(poses) if poses is not None else (
         root / "ground_truth" / "registered_poses.csv")
     table = read_table(pose_path, 9, "Newer College pose", skip_header=True)

@@ -21,7 +21,7 @@ from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.io.datasets.base import (
     build,
     check_options,
-    list_files,
+    list_by_time,
     match_scans,
     pick,
     quat_xyzw,
@@ -54,10 +54,8 @@ def _open(path: Path, clouds: str, suffix: str, pose_name: str, reader, dataset:
           poses, calib, tolerance, options) -> Sequence:
     check_options(dataset, {**options, **({"calib": calib} if calib else {})})
     seq_dir = path.parent if path.name == clouds else path
-    files = list_files(seq_dir / clouds, suffix, f"Wild-Places {clouds}")
-    times = _stamps(files, seq_dir / clouds)
-    order = np.argsort(times, kind="stable")
-    files, times = pick(files, order), times[order]
+    files, times = list_by_time(seq_dir / clouds, suffix, f"Wild-Places {clouds}",
+                                lambda found: _stamps(found, seq_dir / clouds))
     pose_path = Path(poses) if poses is not None else seq_dir / pose_name
     if not pose_path.is_file():
         raise LirisError(pose_path, f"Wild-Places pose file not found ({pose_name} beside "
