@@ -49,6 +49,9 @@ def test_target_lifetimes_largest_keeps_the_largest_recent_view():
         target_lifetimes(world, frame_of, 10, dedup=2.0, recent=3, keep="largest")
     with pytest.raises(ValueError):
         target_lifetimes(world, frame_of, 10, dedup=2.0, recent=3, keep="first")
+    with pytest.raises(LirisError, match="esm.target_view"):
+        get_descriptor("esm", target_view="first")
+    assert get_descriptor("esm").params.target_view == "largest"  # the local-maps preset
 
 
 def _scene(seed=0):
