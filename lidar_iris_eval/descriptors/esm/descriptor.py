@@ -106,27 +106,21 @@ class ESMParams:
     growth: float = 0.1  # "growth": re-describe at >= (1 + growth) x the voxels last described
 
     def __post_init__(self) -> None:
-        if self.source not in _SOURCES:
-            raise LirisError("esm.source", f"must be one of {', '.join(_SOURCES)}, "
-                                           f"got {self.source!r}")
+        for name, choices in (("source", _SOURCES), ("target_view", TARGET_VIEWS),
+                              ("describe", DESCRIBE_RULES), ("ground", _GROUND)):
+            value = getattr(self, name)
+            if value not in choices:
+                raise LirisError(f"esm.{name}", f"must be one of {', '.join(choices)}, "
+                                                f"got {value!r}")
         if int(self.window) < 0:
             raise LirisError("esm.window", "must be 0 (the evaluation's E) or positive")
         if self.frame_rule not in ("estimate", "segments"):
             raise LirisError("esm.frame_rule", "must be 'estimate' or 'segments', "
                                                f"got {self.frame_rule!r}")
-        if self.target_view not in TARGET_VIEWS:
-            raise LirisError("esm.target_view", f"must be one of {', '.join(TARGET_VIEWS)}, "
-                                                f"got {self.target_view!r}")
-        if self.describe not in DESCRIBE_RULES:
-            raise LirisError("esm.describe", f"must be one of {', '.join(DESCRIBE_RULES)}, "
-                                             f"got {self.describe!r}")
         if not self.growth >= 0:
             raise LirisError("esm.growth", f"must be 0 or more, got {self.growth}")
         if int(self.min_consistent) < 3:
             raise LirisError("esm.min_consistent", "a rigid fit needs at least 3 pairs")
-        if self.ground not in _GROUND:
-            raise LirisError("esm.ground", f"must be one of {', '.join(_GROUND)}, "
-                                           f"got {self.ground!r}")
         for name in ("knn", "per_segment", "min_inliers", "iterations", "num_candidates"):
             if int(getattr(self, name)) < 1:
                 raise LirisError(f"esm.{name}", "must be at least 1")
