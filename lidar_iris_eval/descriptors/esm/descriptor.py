@@ -243,8 +243,7 @@ class ESM(Descriptor):
             try:
                 self._weights = network.load_weights(path)
             except (OSError, KeyError, ValueError) as err:
-                raise LirisError(f"esm.weights={self.params.weights}",
-                                 f"cannot read ESM weights {path} ({err})") from None
+                raise self._unreadable_weights(path, err) from None
         return self._weights
 
     def cache_token(self) -> str:
@@ -253,8 +252,12 @@ class ESM(Descriptor):
         try:
             return network.sha256_of(path)[:16]
         except OSError as err:
-            raise LirisError(f"esm.weights={self.params.weights}",
-                             f"cannot read ESM weights {path} ({err})") from None
+            raise self._unreadable_weights(path, err) from None
+
+    def _unreadable_weights(self, path, err: Exception) -> LirisError:
+        """The one error line for a weights file that cannot be read (names the parameter)."""
+        return LirisError(f"esm.weights={self.params.weights}",
+                          f"cannot read ESM weights {path} ({err})")
 
     def describe(self, scan: Any) -> dict[str, np.ndarray]:
         return self.compute(scan)
