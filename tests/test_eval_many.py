@@ -25,8 +25,8 @@ def test_several_sequences_one_folder_with_summary(two_sequences, tmp_path, caps
     code, stdout, err = run_cli(["eval", a, b, "--protocol", "1", "--protocol", "2", "-d",
                                  "m2dp", "--exclude", "10", "-q", "--out", out], capsys)
     assert code == 0, err
-    assert sorted(p.name for p in out.iterdir()) == ["01-a", "02-b", "summary.csv",
-                                                     "summary.md"]
+    assert sorted(p.name for p in out.iterdir()) == [".liris-manifest.json", "01-a", "02-b",
+                                                     "summary.csv", "summary.md"]
     lines = (out / "summary.csv").read_text().splitlines()
     assert lines[0] == "sequence,protocol,descriptor,preset,ap,f1_max,r100p,ep,n_positives"
     assert len(lines) == 1 + 2 * 2  # 2 sequences x 1 descriptor x 2 protocols

@@ -222,7 +222,13 @@ def test_refuses_non_empty_dir_and_overwrites_on_request(tmp_path):
     (tmp_path / "keep.txt").write_text("x")
     with pytest.raises(LirisError, match="not empty"):
         simulate_sequence(tmp_path, preset="tiny-same", frames=3, azimuth_steps=32)
-    simulate_sequence(tmp_path, preset="tiny-same", frames=5, azimuth_steps=32, overwrite=True)
+    # --overwrite replaces only a simulated sequence, never a folder holding a user's file
+    with pytest.raises(LirisError, match="not a sequence liris simulate wrote"):
+        simulate_sequence(tmp_path, preset="tiny-same", frames=5, azimuth_steps=32,
+                          overwrite=True)
+    assert (tmp_path / "keep.txt").read_text() == "x" and len(list(tmp_path.iterdir())) == 1
+    (tmp_path / "keep.txt").unlink()
+    simulate_sequence(tmp_path, preset="tiny-same", frames=5, azimuth_steps=32)
     simulate_sequence(tmp_path, preset="tiny-same", frames=3, azimuth_steps=32, overwrite=True)
     assert len(list((tmp_path / "velodyne").glob("*.bin"))) == 3  # stale scans removed
     assert len(np.loadtxt(tmp_path / "poses.txt", ndmin=2)) == 3

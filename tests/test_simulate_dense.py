@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from test_simulate_golden import tree_digest
+from test_simulate_golden import FRAMES, assert_golden
 
 from lidar_iris_eval.cli import main
 from lidar_iris_eval.errors import LirisError
@@ -21,11 +21,6 @@ from lidar_iris_eval.simulate.world import (
     world_params,
 )
 
-#: ``tree_digest`` of ``simulate_sequence(..., "tiny-mixed", frames=24)`` computed with the
-#: code of commit f00cc22, before world styles existed (in a separate environment
-#: installed from that commit; tests/test_simulate_golden.py's older digests already
-#: differed at that commit)
-TINY_MIXED_24_AT_F00CC22 = "d046209d5a1afde83ef579c9fbfa56f47fd96b799803088bacb01ac6836ab472"
 STREET = 2000.0
 LINES = [np.array([[0.0, 0.0], [STREET, 0.0]])]
 
@@ -93,10 +88,12 @@ def test_urban_dense_is_small_mixed_in_a_denser_world():
 def test_default_style_keeps_the_golden_bytes(tmp_path):
     # the default style, asked for explicitly, goes through the new code path (every new
     # WorldParams field at its default) and must give the bytes of the code before it
-    frames = 24
+    # the golden tiny-mixed run; as a byte digest it equalled the output of commit f00cc22
+    # (before world styles existed), and the fingerprint was retaken from unchanged code
+    frames = FRAMES["tiny-mixed"]
     out = simulate_sequence(tmp_path / "seq", "tiny-mixed", frames=frames,
                             world_style="default")
-    assert tree_digest(out) == TINY_MIXED_24_AT_F00CC22
+    assert_golden(out, "tiny-mixed")
     manifest = json.loads((out / "manifest.json").read_text())
     assert "world_style" not in manifest["config"] and "world_params" not in manifest
     assert manifest["config"] == json.loads(json.dumps(

@@ -8,6 +8,7 @@ import click
 
 from lidar_iris_eval.atomic import figure_format
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.ownership import check_new_files
 from lidar_iris_eval.runs import FORMATS, load_run, render_table
 from lidar_iris_eval.runs.compare import (
     convention_differences,
@@ -25,7 +26,8 @@ from lidar_iris_eval.runs.schema import result_warnings
               help="Output format of the tables.")
 @click.option("--plot", "plot_out", type=click.Path(path_type=Path), default=None,
               help="Also write the PR curves of all runs overlaid to this image (.png/.pdf/.svg).")
-def command(runs, fmt, plot_out):
+@click.option("--overwrite", is_flag=True, help="Replace an existing --plot image.")
+def command(runs, fmt, plot_out, overwrite):
     """Compare the metrics of two or more run folders.
 
     Each later run's difference to the first is shown per metric, and every
@@ -37,6 +39,7 @@ def command(runs, fmt, plot_out):
         raise LirisError("compare", "give at least two run folders")
     if plot_out is not None:
         figure_format(plot_out, "--plot")  # a bad suffix fails before any work
+        check_new_files([plot_out], overwrite, "--plot", inputs=runs)
     loaded = [load_run(r) for r in runs]
     labels = run_labels(loaded)
     rows = metric_comparison(loaded)

@@ -36,6 +36,7 @@ from lidar_iris_eval.evaluation.evaluate import (
 )
 from lidar_iris_eval.executor import check_scheduler, open_executor
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
+from lidar_iris_eval.ownership import check_new_files
 from lidar_iris_eval.runs.table import render_table
 from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, json_ready, write_run
 from lidar_iris_eval.sensors import resolve_sensor
@@ -85,7 +86,9 @@ register_flags({
                    "docs/loop-poses.md.")
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Run folder [default: results/<sequence>-<timestamp>].")
-@click.option("--overwrite", is_flag=True, help="Replace an existing run folder.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing run folder liris wrote (never an input or a folder "
+                   "holding other files), and existing --export-loops files.")
 @click.option("--block-pairs", type=int, default=DEFAULT_PAIR_BUDGET, show_default=True,
               help="Distances computed per block (bounds memory).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json instead of a table.")
@@ -172,6 +175,9 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
     if out is None:
         out = default_run_dir(seq.name)
     check_run_dir(out, overwrite)
+    if export_path is not None:
+        check_new_files(loop_export_paths(export_path, [d.name for d in descriptors]),
+                        overwrite, "--export-loops", inputs=[sequence])
 
     cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
     with open_executor(check_scheduler(scheduler), workers) as executor:

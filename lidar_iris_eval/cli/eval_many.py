@@ -37,7 +37,8 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import extract_all
     from lidar_iris_eval.evaluation.evaluate import bind_exclusion, check_request, evaluate
-    from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, write_run
+    from lidar_iris_eval.ownership import check_replaceable, replace_folder, write_manifest
+    from lidar_iris_eval.runs.writer import RUN_KINDS, check_run_dir, default_run_dir, write_run
 
     check_scheduler(scheduler)
     # everything is validated before any work: paths, descriptors, protocols, inputs
@@ -77,9 +78,10 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
         rows = summary_rows(per_run)
         write_text_atomic(tmp / "summary.csv", summary_csv(rows))
         write_text_atomic(tmp / "summary.md", summary_markdown(rows))
-        if out.exists():  # check_run_dir allowed it: --overwrite was given
-            shutil.rmtree(out)
-        os.replace(tmp, out)
+        write_manifest(tmp, "multi")
+        if out.exists() or out.is_symlink():  # check_run_dir allowed it: --overwrite was given
+            check_replaceable(out, RUN_KINDS)  # again: a file may have been added meanwhile
+        replace_folder(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     click.echo(format_table([{c: _short(r.get(c)) for c in SUMMARY_COLUMNS} for r in rows]))

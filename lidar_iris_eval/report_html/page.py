@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, os_error
+from lidar_iris_eval.ownership import check_replaceable, replace_folder, write_manifest
 from lidar_iris_eval.runs import Run, conventions_lines, load_run
 from lidar_iris_eval.runs.schema import result_warnings
 from lidar_iris_eval.runs.table import RANKING_COLUMNS, TABLE_COLUMNS, cell, table_row
@@ -53,8 +54,10 @@ def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = Non
     plotly, go = _plotly()
     run = load_run(run_dir)
     out = Path(out) if out is not None else run.path / "report"
-    if out.exists() and not overwrite:
+    if (out.exists() or out.is_symlink()) and not overwrite:
         raise LirisError(out, "report folder already exists; pass --overwrite to replace it")
+    if overwrite:  # only a report liris wrote, with nothing of the user's in it
+        check_replaceable(out, ("report",))
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     umask = os.umask(0)
@@ -67,13 +70,12 @@ def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = Non
                                             encoding="utf-8")
         except OSError as err:  # name the report, not the folder it was assembled in
             raise os_error(err, out / "index.html", "cannot write the report") from None
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            os.rename(out, old)
-            os.rename(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out)
+        write_manifest(tmp, "report")
+        if out.exists() or out.is_symlink():
+            if not overwrite:
+                raise LirisError(out, "report folder appeared while writing; not replaced")
+            check_replaceable(out, ("report",))
+        replace_folder(tmp, out)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -39,18 +39,27 @@ from lidar_iris_eval.evaluation.metrics import PRCurve, reduce_curve
 from lidar_iris_eval.evaluation.protocol1 import Protocol1Result
 from lidar_iris_eval.evaluation.protocol2 import Protocol2Result
 from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
+from lidar_iris_eval.ownership import check_replaceable, replace_folder, write_manifest
+
+#: the folder kinds ``liris eval --overwrite`` may replace (see :mod:`lidar_iris_eval.ownership`)
+RUN_KINDS = ("run", "multi")
 
 
 def check_run_dir(out: str | os.PathLike, overwrite: bool) -> Path:
     """Refuse an existing run directory unless ``overwrite``; returns the path.
 
+    ``overwrite`` only ever replaces a folder liris wrote with nothing added
+    (:func:`~lidar_iris_eval.ownership.check_replaceable`): an input sequence
+    or a folder holding a user's own file is refused, untouched.
     Also checks, before any work starts, that the folder can be created: a
     read-only location or a file in the way fails now, not after extraction.
     """
     out = Path(out)
-    if out.exists() and not overwrite:
+    if (out.exists() or out.is_symlink()) and not overwrite:
         raise LirisError(out, "results directory already exists; pass --overwrite to replace it")
-    if out.exists() and not out.is_dir():
+    if overwrite:
+        check_replaceable(out, RUN_KINDS)
+    elif out.exists() and not out.is_dir():
         raise LirisError(out, "exists and is not a directory")
     check_writable_dir(out, "run folder")
     return out
@@ -121,17 +130,22 @@ class RunWriter:
         np.save(self.path(relative), np.asarray(array), allow_pickle=False)
 
     def commit(self) -> Path:
-        """Move the finished run into place (replacing the old one if allowed)."""
-        old = None
-        if self.out.exists():
-            if not self.overwrite:
-                shutil.rmtree(self.tmp, ignore_errors=True)
-                raise LirisError(self.out, "results directory appeared while running; not replaced")
-            old = self.out.parent / f".{self.out.name}.old-{os.getpid()}"
-            os.rename(self.out, old)
-        os.rename(self.tmp, self.out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        """Move the finished run into place (replacing the old one if allowed).
+
+        The folder's manifest is written last, listing every file; the old run
+        is checked again (a file may have been added to it while this one ran).
+        """
+        try:
+            write_manifest(self.tmp, "run")
+            if self.out.exists() or self.out.is_symlink():
+                if not self.overwrite:
+                    raise LirisError(self.out,
+                                     "results directory appeared while running; not replaced")
+                check_replaceable(self.out, RUN_KINDS)
+            replace_folder(self.tmp, self.out)
+        except BaseException:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            raise
         return self.out
 
 

@@ -39,7 +39,7 @@ from lidar_iris_eval.simulate.presets import SimConfig
 from lidar_iris_eval.simulate.raycast import Primitives, make_primitives
 from lidar_iris_eval.simulate.sensors import SENSORS
 from lidar_iris_eval.simulate.world import World, car_rows
-from lidar_iris_eval.simulate.writer import atomic_write, prepare_out_dir
+from lidar_iris_eval.simulate.writer import atomic_write, check_out_dir, prepare_out_dir
 
 #: probability that a parked car of session 0 is not there on another day
 PARKED_GONE = 0.5
@@ -147,10 +147,7 @@ def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
     out_dir = Path(out_dir)
     cfg = with_frames(cfg)
     names = session_sensors(cfg, sessions, tuple(sensors))
-    if out_dir.exists() and not out_dir.is_dir():
-        raise LirisError(out_dir, "exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
+    check_out_dir(out_dir, overwrite, sessions=True)
     start = time.perf_counter()
     origin = None
     rows = []

@@ -16,12 +16,14 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error
+from lidar_iris_eval.ownership import list_files
 
 
 def default_tr() -> np.ndarray:
@@ -96,12 +98,21 @@ def atomic_write(path: Path, data: bytes) -> None:
     write(path, data, what="simulated file")
 
 
-def check_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Refuse a file, or a non-empty folder without ``overwrite``; creates nothing."""
+def check_out_dir(out_dir: Path, overwrite: bool, sessions: bool = False) -> None:
+    """Refuse a file, or a non-empty folder without ``overwrite``; creates nothing.
+
+    With ``overwrite``, only a sequence ``liris simulate`` wrote (or, with
+    ``sessions``, a folder of simulated sessions) holding nothing else is
+    replaced (see :func:`check_simulation_replaceable`).
+    """
+    if out_dir.is_symlink() and overwrite:
+        raise LirisError(out_dir, "OUT_DIR is a symbolic link; --overwrite does not replace links")
     if out_dir.exists() and not out_dir.is_dir():
         raise LirisError(out_dir, "exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        if not overwrite:
+            raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
+        check_simulation_replaceable(out_dir, sessions)
     check_writable_dir(out_dir.parent if str(out_dir.parent) else Path("."),
                        "folder for the simulated sequence")
 
@@ -109,6 +120,51 @@ def check_out_dir(out_dir: Path, overwrite: bool) -> None:
 #: what a finished simulation consists of; manifest.json is moved last (the completion mark)
 PUBLISHED = ("velodyne", "labels", "object_ids", "poses.txt", "times.txt", "calib.txt",
              "manifest.json")
+
+
+#: the files of a simulated sequence, relative to its folder
+_SIMULATED_FILE = re.compile(r"(poses\.txt|times\.txt|calib\.txt|manifest\.json"
+                             r"|velodyne/\d+\.bin|labels/\d+\.label|object_ids/\d+\.npy)")
+
+
+def check_simulation_replaceable(out_dir: Path, sessions: bool = False) -> None:
+    """Raise :class:`LirisError` unless ``--overwrite`` may replace the non-empty ``out_dir``.
+
+    ``--overwrite`` replaces a simulated sequence, never a real one or a
+    folder holding anything else: the folder's ``manifest.json`` must name
+    ``liris simulate`` as its generator and every file must be one a
+    simulation writes. A sessions folder (``sessions``) must hold its
+    ``sessions.json`` and ``session<k>`` folders that each pass that check.
+    """
+    if sessions:
+        if not (out_dir / "sessions.json").is_file():
+            raise LirisError(out_dir, "not a folder of simulated sessions (no sessions.json); "
+                                      "--overwrite only replaces what liris simulate wrote")
+        for entry in sorted(out_dir.iterdir()):
+            if entry.name == "sessions.json":
+                continue
+            if not re.fullmatch(r"session\d+", entry.name) or entry.is_symlink() \
+                    or not entry.is_dir():
+                raise LirisError(out_dir, f"holds {entry.name}, which liris simulate did not "
+                                          "write; not replaced")
+            check_simulation_replaceable(entry)
+        return
+    if not _written_by_simulate(out_dir / "manifest.json"):
+        raise LirisError(out_dir, "not a sequence liris simulate wrote (no manifest.json "
+                                  "naming it): --overwrite only replaces simulated sequences")
+    for rel in list_files(out_dir):
+        if not _SIMULATED_FILE.fullmatch(rel) or (out_dir / rel).is_symlink():
+            raise LirisError(out_dir, f"holds {rel}, which liris simulate did not write; "
+                                      "not replaced (move it away or choose another OUT_DIR)")
+
+
+def _written_by_simulate(manifest: Path) -> bool:
+    try:
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return (isinstance(data, dict) and isinstance(data.get("generator"), str)
+            and data["generator"].startswith("liris simulate"))
 
 
 def publish(work: Path, out_dir: Path) -> None:
@@ -139,11 +195,8 @@ def publish(work: Path, out_dir: Path) -> None:
 
 
 def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Create ``out_dir``; refuse a non-empty one unless ``overwrite``."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise LirisError(out_dir, "exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise LirisError(out_dir, "directory is not empty (use --overwrite to replace it)")
+    """Create ``out_dir``; refuse a non-empty one unless ``overwrite`` (:func:`check_out_dir`)."""
+    check_out_dir(out_dir, overwrite)
     (out_dir / "velodyne").mkdir(parents=True, exist_ok=True)
     (out_dir / "labels").mkdir(parents=True, exist_ok=True)
     (out_dir / "object_ids").mkdir(parents=True, exist_ok=True)
