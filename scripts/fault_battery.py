@@ -54,6 +54,8 @@ class Case:
     fragment: str = ""  # must appear in the error line
     check: Callable[[Result], str | None] | None = None  # message when the result is wrong
     env: dict[str, str] = field(default_factory=dict)
+    # checked whatever the exit code (e.g. that the user's files are all still there)
+    always: Callable[[Result], str | None] | None = None
 
 
 def run(argv: list[str], cwd: Path, env: dict[str, str] | None = None,
@@ -69,6 +71,13 @@ def run(argv: list[str], cwd: Path, env: dict[str, str] | None = None,
 
 def verdict(case: Case, res: Result) -> str | None:
     """None when the case ended cleanly, else why not."""
+    why = _verdict(case, res)
+    if why is None and case.always is not None:
+        why = case.always(res)
+    return why
+
+
+def _verdict(case: Case, res: Result) -> str | None:
     if "Traceback" in res.err:
         return "traceback: " + res.err.strip().splitlines()[-1][:160]
     errors = [line for line in res.err.splitlines() if line.startswith("liris: error:")]
@@ -530,6 +539,72 @@ def cases() -> list[Case]:
     return c
 
 
+def digest_tree(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def unchanged(folder: str) -> tuple[Callable[[Path], None], Callable[[Result], str | None]]:
+    """A setup step that records ``folder``'s bytes and a check that they are all still there."""
+    before: dict[str, bytes] = {}
+
+    def record(cwd: Path) -> None:
+        before.clear()
+        before.update(digest_tree(cwd / folder))
+
+    def check(res: Result) -> str | None:
+        after = digest_tree(res.cwd / folder) if (res.cwd / folder).exists() else {}
+        lost = sorted(k for k in before if after.get(k) != before[k])
+        return f"{folder}: {len(lost)} files lost or changed ({lost[:2]})" if lost else None
+
+    return record, check
+
+
+def ownership_cases() -> list[Case]:
+    """Issue 40: --overwrite only replaces what liris wrote; nothing of the user's is lost."""
+    c: list[Case] = []
+    quick = ["-q", "--frames", "0:80", "-d", "m2dp", "--protocol", "1"]
+    record, same = unchanged("S")
+    c.append(Case("eval --out the input --overwrite", ["eval", "S", *quick, "--out", "S",
+                                                       "--overwrite"],
+                  chain(copy_seq(), record), "error", "not a folder liris wrote", always=same))
+    record, same = unchanged(".")
+    c.append(Case("eval --out the parent of the input --overwrite",
+                  ["eval", "S", *quick, "--out", ".", "--overwrite"],
+                  chain(copy_seq(), record), "error", "not a folder liris wrote", always=same))
+    record, same = unchanged("R")
+    c.append(Case("eval --overwrite a run holding a user file",
+                  ["eval", "S", *quick, "--out", "R", "--overwrite"],
+                  chain(copy_seq(), copy_run(), write("R/notes.txt", "mine\n"), record),
+                  "error", "notes.txt", always=same))
+    record, same = unchanged("rep")
+    c.append(Case("report --overwrite a folder of the user's",
+                  ["report", "R", "--out", "rep", "--overwrite"],
+                  chain(copy_run(), write("rep/slides.pdf", b"%PDF mine"), record),
+                  "error", "not a folder liris wrote", always=same))
+    record, same = unchanged("keep")
+    c.append(Case("export-loops onto an existing file",
+                  ["eval", "S", *quick, "--out", "O", "--export-loops", "keep/l.g2o"],
+                  chain(copy_seq(), write("keep/l.g2o", "# mine\n"), record),
+                  "error", "--overwrite", always=same))
+    record, same = unchanged("S")
+    c.append(Case("export-loops onto an input file with --overwrite",
+                  ["eval", "S", *quick, "--out", "O", "--export-loops", "S/poses.txt",
+                   "--overwrite"], chain(copy_seq(), record), "error", "part of the input",
+                  always=same))
+    record, same = unchanged("keep")
+    c.append(Case("compare --plot onto an existing image",
+                  ["compare", "R", "R2", "--plot", "keep/x.png"],
+                  chain(copy_run(), copy_run("R2"), write("keep/x.png", b"mine"), record),
+                  "error", "--overwrite", always=same))
+    record, same = unchanged("S")
+    c.append(Case("simulate --overwrite a sequence with a user file",
+                  ["simulate", "S", "-q", "--frames", "3", "--overwrite"],
+                  chain(copy_seq(), write("S/velodyne/readme.md", "mine"), record),
+                  "error", "velodyne/readme.md", always=same))
+    return c
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-k", default="", help="run only cases whose name contains this")
@@ -543,7 +618,7 @@ def main() -> int:
     if not (base / "R" / "metrics.json").is_file():
         base.mkdir(exist_ok=True)
         make_base(base)
-    selected = [case for case in cases() if args.k in case.name]
+    selected = [case for case in cases() + ownership_cases() if args.k in case.name]
     failures: dict[str, str] = {}
     for k, case in enumerate(selected):
         cwd = root / f"case{k:03d}"
