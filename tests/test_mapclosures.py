@@ -198,6 +198,8 @@ def test_liris_eval_records_the_local_maps_and_respects_e(tmp_path, capsys, revi
         assert (r["local_map_window"], r["local_map_radius_m"], r["local_map_voxel_m"],
                 r["local_map_odometry"]) == (4, 50.0, 0.5, "gt")
         assert r["map_closures_version"] == "2.2.0"
+        # the timing and sizes describe the run's maps, not the pipeline's 2-frame warm-up
+        assert r["local_maps"] == len(feats) and r["local_map_points_median"] > 0
     import pandas as pd
 
     m = pd.read_csv(tmp_path / "run" / "protocol1" / "mapclosures" / "matches.csv")

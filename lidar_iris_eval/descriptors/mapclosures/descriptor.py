@@ -192,7 +192,9 @@ class MapClosures(Descriptor):
             "map_closures_version": backend.installed_version(),
         }
         if self._prepared:
-            table = self._prepared[-1][1]
+            # the run's own table: the pipeline's two-frame warm-up may have come last
+            table = max((t for _, t in self._prepared), key=lambda t: t.n)
+            info["local_maps"] = int(len(table.map_points))
             info["local_map_points_median"] = (float(np.median(table.map_points))
                                                if len(table.map_points) else None)
             info["local_maps_s"] = table.seconds.get("local_maps")
