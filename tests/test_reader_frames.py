@@ -1,0 +1,182 @@
+"""Every reader returns z-up scans (liris's x forward, y left, z up), whatever the dataset stores.
+
+Each test writes the scans in the dataset's *native* sensor frame (tests/
+dataset_writers.py writes the bytes), with the road 1.6 m below the sensor:
+at z = +1.6 where the dataset's frame is z-down (Oxford, NCLT), at z = -1.6
+elsewhere. Read back, the road must be 1.6 m *below* the sensor. For the two
+z-down datasets the x axis must also point forward on the vehicle, checked
+against the dataset's own extrinsics (not the reader's rotation).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from dataset_writers import (
+    NCLT_T_BODY_VELO,
+    Case,
+    loop_case,
+    oxford_ins_to_lidar,
+    oxford_png_bytes,
+    write_apollo,
+    write_boreas,
+    write_helipr,
+    write_kitti360,
+    write_mulran,
+    write_nclt,
+    write_newer_college,
+    write_nuscenes,
+    write_oxford_bin,
+    write_oxford_png,
+    write_wild_v3,
+    write_wild_v12,
+)
+from PIL import Image
+
+from lidar_iris_eval.errors import LirisWarning
+from lidar_iris_eval.io import open_sequence
+
+HEIGHT = 1.6  # m: the road below the sensor
+
+
+def _road(rng: np.random.Generator, down: float) -> np.ndarray:
+    """A road disc 3-15 m around the sensor at ``down`` along the native z axis,
+    plus a wall 10 m ahead along native +x (so the frame's orientation shows)."""
+    a = rng.uniform(-np.pi, np.pi, 400)
+    r = rng.uniform(3, 15, 400)
+    road = np.c_[r * np.cos(a), r * np.sin(a), np.full(400, down)]
+    wall = np.c_[np.full(50, 10.0), rng.uniform(-3, 3, 50), rng.uniform(-1, 1, 50)]
+    return np.concatenate([road, wall])
+
+
+def _native_case(z_down: bool) -> Case:
+    """The loop case's poses and times with road scans in the native frame."""
+    case = loop_case(21)
+    rng = np.random.default_rng(21)
+    down = HEIGHT if z_down else -HEIGHT
+    scans = [_road(rng, down) for _ in case.scans]
+    return Case(scans, [rng.uniform(0, 100, len(s)) for s in scans], case.poses, case.times)
+
+
+def _open(path, **options):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LirisWarning)
+        return open_sequence(path, **options)
+
+
+WRITERS = {
+    "mulran": (False, lambda t, c: write_mulran(t, c)),
+    "nclt": (True, lambda t, c: write_nclt(t, c)),
+    "nclt-hits": (True, lambda t, c: write_nclt(t, c, hits=True) / "velodyne_hits.bin"),
+    "oxford": (True, lambda t, c: write_oxford_bin(t, c) / "velodyne_left"),
+    "helipr-Ouster": (False, lambda t, c: write_helipr(t, c, "Ouster")),
+    "helipr-Velodyne": (False, lambda t, c: write_helipr(t, c, "Velodyne")),
+    "helipr-Aeva": (False, lambda t, c: write_helipr(t, c, "Aeva")),
+    "helipr-Avia": (False, lambda t, c: write_helipr(t, c, "Avia")),
+    "wild-places-v3": (False, lambda t, c: write_wild_v3(t, c)),
+    "wild-places": (False, lambda t, c: write_wild_v12(t, c)),
+    "newer-college": (False, lambda t, c: write_newer_college(t, c)),
+    "nuscenes": (False, lambda t, c: write_nuscenes(t, c)),
+    "boreas": (False, lambda t, c: write_boreas(t, c)),
+    "apollo": (False, lambda t, c: write_apollo(t, c)),
+    "kitti360": (False, lambda t, c: write_kitti360(t, c)[0]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(WRITERS))
+def test_the_road_is_below_the_sensor(tmp_path, name):
+    z_down, write = WRITERS[name]
+    case = _native_case(z_down)
+    path = write(tmp_path, case)
+    seq = _open(path, **({"scene": "scene-0061"} if name == "nuscenes" else {}))
+    points = seq.scan(0).points
+    road = np.abs(np.abs(points[:, 2]) - HEIGHT) < 0.05
+    assert road.sum() >= 400  # every road point read back (NCLT: 5 mm steps)
+    np.testing.assert_allclose(points[road, 2], -HEIGHT, atol=0.01)
+    assert np.median(points[:, 2]) < -1.5
+    # the frame is rotated, not mirrored: the wall keeps its distance and side of the road
+    wall = np.abs(points[:, 2]) < 1.01
+    assert wall.sum() == 50
+    assert np.allclose(np.hypot(points[wall, 0], points[wall, 1]).min(), 10.0, atol=0.01)
+
+
+def _forward_and_up(seq_pose: np.ndarray, vehicle_pose: np.ndarray) -> tuple:
+    """The read LiDAR frame's x and z axes in a vehicle frame that is x forward, z down."""
+    rotation = (np.linalg.inv(vehicle_pose) @ seq_pose)[:3, :3]
+    return rotation[:, 0], rotation[:, 2]
+
+
+def test_oxford_x_points_forward_and_z_up_on_the_car(tmp_path):
+    case = _native_case(True)
+    seq = _open(write_oxford_bin(tmp_path, case) / "velodyne_left")
+    ins = case.poses[0] @ np.linalg.inv(oxford_ins_to_lidar())  # the INS: x fwd, y right, z down
+    x_axis, z_axis = _forward_and_up(seq.poses[0], ins)
+    assert x_axis @ np.array([1.0, 0, 0]) > np.cos(np.radians(5))
+    assert z_axis @ np.array([0, 0, -1.0]) > np.cos(np.radians(5))
+    # the wall written 10 m ahead along the SDK's x (the car's back) now lies behind
+    points = seq.scan(0).points
+    wall = np.abs(points[:, 2]) < 1.01
+    assert np.all(points[wall, 0] < -9.9)
+    # world points are unchanged by the rotation
+    world_read = points @ seq.poses[0][:3, :3].T + seq.poses[0][:3, 3]
+    world_native = case.scans[0] @ case.poses[0][:3, :3].T + case.poses[0][:3, 3]
+    np.testing.assert_allclose(world_read, world_native, atol=1e-4)
+
+
+def test_nclt_x_points_forward_and_z_up_on_the_segway(tmp_path):
+    case = _native_case(True)
+    seq = _open(write_nclt(tmp_path, case))
+    body = case.poses[0] @ np.linalg.inv(NCLT_T_BODY_VELO)  # body: x fwd, y right, z down
+    x_axis, z_axis = _forward_and_up(seq.poses[0], body)
+    assert x_axis @ np.array([1.0, 0, 0]) > np.cos(np.radians(5))
+    assert z_axis @ np.array([0, 0, -1.0]) > np.cos(np.radians(5))
+    points = seq.scan(0).points
+    world_read = points @ seq.poses[0][:3, :3].T + seq.poses[0][:3, 3]
+    world_native = case.scans[0] @ case.poses[0][:3, :3].T + case.poses[0][:3, 3]
+    np.testing.assert_allclose(world_read, world_native, atol=0.01)
+
+
+def test_oxford_raw_png_road_below(tmp_path):
+    """Raw firings of the SDK's elevation table: beams with a positive SDK elevation look
+    down (z-down frame); their returns on a road 1.6 m below must read back at z = -1.6."""
+    from lidar_iris_eval.io.datasets.oxford import BASE_TO_FIRE_HEIGHT, HDL32E_ELEVATIONS
+
+    case = loop_case(5)
+    run, _ = write_oxford_png(tmp_path, case)
+    elevation = np.asarray(HDL32E_ELEVATIONS)
+    columns = 90
+    ranges = np.zeros((32, columns), dtype=np.uint16)
+    down = elevation > 0.05
+    # SDK: z = sin(e)·r − base_to_fire  (z down); road at z = +1.6
+    metres = (HEIGHT + BASE_TO_FIRE_HEIGHT) / np.sin(elevation[down])
+    ranges[down] = np.round(metres / 0.002).astype(np.uint16)[:, None]
+    azimuth = np.linspace(0, 35999, columns).astype(np.uint16)
+    intensity = np.full((32, columns), 9, dtype=np.uint8)
+    for png in sorted((run / "velodyne_left").glob("*.png")):
+        Image.fromarray(oxford_png_bytes(ranges, azimuth, intensity, int(png.stem)),
+                        mode="L").save(png)
+    points = _open(run).scan(0).points
+    assert len(points) == down.sum() * columns
+    np.testing.assert_allclose(points[:, 2], -HEIGHT, atol=0.01)
+
+
+def test_liris_datasets_names_each_frame_and_intensity(capsys):
+    import json
+
+    from conftest import run_cli
+
+    from lidar_iris_eval.io.datasets import DATASETS
+
+    code, out, err = run_cli(["datasets"], capsys)
+    assert code == 0, err
+    frames = [line.strip() for line in out.splitlines() if line.strip().startswith("frame:")]
+    values = [line for line in out.splitlines() if line.strip().startswith("intensity:")]
+    assert len(frames) == len(values) == len(DATASETS)
+    assert all(len(line.split(":", 1)[1].strip()) >= 4 for line in frames + values)
+    assert "turned" in DATASETS["oxford"].frame and "turned" in DATASETS["nclt"].frame
+    assert "dB" in DATASETS["helipr"].intensity
+    code, out, _ = run_cli(["datasets", "--json"], capsys)
+    rows = json.loads(out)
+    assert all(row["frame"] and row["intensity"] for row in rows)
