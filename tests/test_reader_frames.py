@@ -180,3 +180,50 @@ def test_liris_datasets_names_each_frame_and_intensity(capsys):
     code, out, _ = run_cli(["datasets", "--json"], capsys)
     rows = json.loads(out)
     assert all(row["frame"] and row["intensity"] for row in rows)
+
+
+# --- nuScenes: the car's own returns ------------------------------------------------------
+
+
+def _ego_returns(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Returns off the car's roof and body: inside the 2 m x 2 m square around the sensor,
+    at heights down to -1.8 m (elevations to about -60 deg)."""
+    return np.c_[rng.uniform(-0.99, 0.99, n), rng.uniform(-0.99, 0.99, n),
+                 rng.uniform(-1.8, 0.1, n)]
+
+
+def _near_misses(rng: np.random.Generator) -> np.ndarray:
+    """Points just outside the square (one coordinate at 1.0..1.2 m) and far ones inside
+    one band (|x| < 1 but |y| = 5): all must be kept."""
+    edge = np.r_[1.0, rng.uniform(1.0, 1.2, 19)]
+    inner = rng.uniform(-0.9, 0.9, 20)
+    side = rng.choice([-1.0, 1.0], 20)
+    return np.concatenate([np.c_[edge * side, inner, np.zeros(20)],
+                           np.c_[inner, edge * side, np.full(20, -1.7)],
+                           np.c_[inner, np.full(20, 5.0), np.zeros(20)]])
+
+
+def test_nuscenes_planted_ego_returns_are_removed_exactly(tmp_path):
+    rng = np.random.default_rng(40)
+    base = loop_case(10)
+    scene = [np.concatenate([_near_misses(rng), _road(rng, -1.8)]) for _ in base.scans]
+    planted = [_ego_returns(rng, int(0.3 * len(s))) for s in scene]
+    scans, intensity, order = [], [], []
+    for keep, ego in zip(scene, planted, strict=True):
+        cloud = np.concatenate([keep, ego])
+        perm = rng.permutation(len(cloud))  # ego returns mixed in, as in a real sweep
+        scans.append(cloud[perm])
+        intensity.append(np.arange(len(cloud), dtype=float)[perm])
+        order.append(perm)
+    root = write_nuscenes(tmp_path, Case(scans, intensity, base.poses, base.times))
+    seq = _open(root, scene="scene-0061")
+    for k, (keep, perm) in enumerate(zip(scene, order, strict=True)):
+        scan = seq.scan(k)
+        kept_rows = perm[perm < len(keep)]  # the planted rows are the last ones before perm
+        assert len(scan.points) == len(keep)
+        np.testing.assert_allclose(scan.points, keep[kept_rows], atol=1e-5)
+        np.testing.assert_array_equal(scan.intensity, kept_rows.astype(np.float32))
+    # ego_radius=0 keeps every point; a larger box takes the near misses too
+    assert len(_open(root, scene="scene-0061", ego_radius=0.0).scan(0).points) == len(scans[0])
+    assert len(_open(root, scene="scene-0061", ego_radius=1.3).scan(0).points) == (
+        len(scene[0]) - 40)
