@@ -194,7 +194,7 @@ def test_mulran_more_pose_rows_than_scans(tmp_path):
     np.testing.assert_allclose(seq.poses, case.poses, atol=POSE_ATOL)
     assert [len(seq.scan(k).points) for k in range(len(seq))] == [len(s) for s in case.scans]
     _check_scans(seq, case)
-    assert seq.sensor_preset == "os1-64"
+    assert seq.sensor_preset == "os1-64-gen1"
 
 
 def test_nclt_uint16_coordinates_beyond_64_m(tmp_path):
@@ -410,7 +410,7 @@ def test_liris_datasets_lists_every_reader(capsys):
     code, out, _ = run_cli(["datasets", "--json"], capsys)
     listed = json.loads(out)
     assert [d["name"] for d in listed] == list(DATASETS)
-    assert {d["name"]: d["sensor"] for d in listed}["mulran"] == "os1-64"
+    assert {d["name"]: d["sensor"] for d in listed}["mulran"] == "os1-64-gen1"
 
 
 # --- truncated and malformed files: one line, exit 2 ---------------------------------------------

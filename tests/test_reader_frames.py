@@ -245,9 +245,9 @@ AUTO_CASES = {
     "kitti360": (lambda t, c: write_kitti360(t, c)[0], None, False),
 }
 #: the preset each reader reports, i.e. its dataset's LiDAR (from the data sheets)
-AUTO_EXPECTED = {"mulran": "os1-64", "nclt": "hdl32", "oxford": "hdl32",
+AUTO_EXPECTED = {"mulran": "os1-64-gen1", "nclt": "hdl32", "oxford": "hdl32",
                  "helipr-Ouster": "os2-128", "helipr-Velodyne": "vlp16", "helipr-Avia": "avia",
-                 "newer-college": "os1-64", "nuscenes": "hdl32", "apollo": "hdl64",
+                 "newer-college": "os1-64-gen1", "nuscenes": "hdl32", "apollo": "hdl64",
                  "kitti360": "hdl64"}
 
 

@@ -216,7 +216,7 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "vehicle base frame, ns stamps, more rows than scans",
         "each scan gets the pose at its stamp (interpolated, named tolerance); "
         "T_base · T_base_ouster (calib_base2ouster.txt)",
-        "os1-64", "Ouster/ beside global_pose.csv",
+        "os1-64-gen1", "Ouster/ beside global_pose.csv",
         lambda p: mulran_sequence(p) is not None, "mulran:open_mulran",
         frame=("Ouster OS1-64, z up: kept (its x points backwards on the car, base → Ouster yaw "
                "179.67°; not turned)"),
@@ -305,7 +305,7 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "base frame, sec,nsec,x,y,z,qx,qy,qz,qw",
         "pose at each scan stamp; T_base · T_CL (q = 0, 0, 0.924, 0.383; "
         "t = −0.084, −0.025, 0.050)",
-        "os1-64", "ground_truth/registered_poses.csv",
+        "os1-64-gen1", "ground_truth/registered_poses.csv",
         _newer_college, "newer_college:open_newer_college",
         frame="Ouster OS1-64, z up: kept",
         intensity="the PCD's intensity field as stored, else none"),
