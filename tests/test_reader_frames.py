@@ -297,3 +297,26 @@ def test_sensor_auto_picks_the_readers_lidar_on_native_scans(tmp_path, name):
     # the same scans as stored (z-down, with the car's returns) fool the guess: the test can fail
     if frame is not None or ego:
         assert guess_sensor([np.asarray(p, np.float32) for p in native[:3]])[0] != expected
+
+
+@pytest.mark.parametrize("name", ["oxford", "nuscenes"])
+def test_cli_sensor_auto_chooses_hdl32_on_oxford_and_nuscenes(tmp_path, capsys, name):
+    from conftest import run_cli
+
+    write, frame, ego = AUTO_CASES[name]
+    rng = np.random.default_rng(6)
+    native = _simulated_scans("hdl32")
+    if ego:
+        native = [np.concatenate([p, _car_returns(rng, int(0.3 * len(p)))]) for p in native]
+    if frame is not None:
+        from dataset_writers import OXFORD_TO_LIRIS
+
+        native = [p @ OXFORD_TO_LIRIS for p in native]
+    base = loop_case(31)
+    path = write(tmp_path, Case(native, [rng.uniform(0, 100, len(p)) for p in native],
+                                base.poses, base.times))
+    code, _, err = run_cli(["extract", path, "-d", "scan-context", "--sensor", "auto", "-q",
+                            "--frames", "0:3", "--cache-dir", tmp_path / "cache",
+                            *(["--scene", "scene-0061"] if ego else [])], capsys)
+    assert code == 0, err
+    assert "--sensor auto: chose hdl32" in err
