@@ -89,6 +89,10 @@ SENSORS: dict[str, SensorSpec] = {
                    _even(-45.0, 45.0, 128), 360.0, 1024, 50.0, 0.5, None, 1.0),
         SensorSpec("os1-64", "Ouster OS1-64", "Ouster OS1 Rev 6 data sheet",
                    _even(-22.5, 22.5, 64), 360.0, 1024, 120.0, 0.5, None, 1.8),
+        # the first-generation OS1-64 of MulRan (2019) and Newer College (2020): the
+        # 2018-2019 OS1 data sheet gives +16.6 .. -16.6 deg (33.2) for 64 channels
+        SensorSpec("os1-64-gen1", "Ouster OS1-64 (Gen 1)", "Ouster OS1 data sheet (2018-2019)",
+                   _even(-16.6, 16.6, 64), 360.0, 1024, 120.0, 0.8, None, 1.8),
         SensorSpec("os1-128", "Ouster OS1-128", "Ouster OS1 Rev 6 data sheet",
                    _even(-22.5, 22.5, 128), 360.0, 1024, 120.0, 0.5, None, 1.8),
         SensorSpec("os2-128", "Ouster OS2-128", "Ouster OS2 Rev 6 data sheet",

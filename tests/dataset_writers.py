@@ -64,6 +64,28 @@ def quat_of(rotation: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(rotation).as_quat()
 
 
+# --- the datasets' sensor frames against liris's (x forward, y left, z up) ---------------
+#
+# The readers rotate z-down frames into liris's; these are the rotations as stated
+# in each dataset's tools (rebuilt here from elementary rotations, rounded to the
+# exact signed permutation): ``liris = R @ native``.
+
+#: Oxford SDK Velodyne frame: x backward, y left, z down on the car -> half turn about y
+OXFORD_TO_LIRIS = np.round(ry(np.pi))
+#: NCLT Velodyne frame: x left, y forward, z down -> half turn about (x + y) / sqrt 2
+NCLT_TO_LIRIS = np.round(Rotation.from_rotvec(np.pi * np.array([1, 1, 0]) / np.sqrt(2))
+                         .as_matrix())
+
+
+def to_liris_points(points: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    return np.asarray(points, dtype=np.float64) @ rotation.T
+
+
+def to_liris_poses(poses: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """Poses of the native LiDAR frame -> poses of the rotated frame (world points kept)."""
+    return np.asarray(poses) @ transform(rotation.T, (0, 0, 0))
+
+
 # --- the planted loop ------------------------------------------------------------
 
 

@@ -17,6 +17,8 @@ import pytest
 from conftest import assert_one_line_error, run_cli
 from dataset_writers import (
     HELIPR_SWITCH,
+    NCLT_TO_LIRIS,
+    OXFORD_TO_LIRIS,
     Case,
     loop_case,
     nclt_decode_expected,
@@ -24,6 +26,8 @@ from dataset_writers import (
     oxford_raw_expected,
     rows,
     sorted_by_azimuth,
+    to_liris_points,
+    to_liris_poses,
     write_apollo,
     write_boreas,
     write_helipr,
@@ -190,13 +194,13 @@ def test_mulran_more_pose_rows_than_scans(tmp_path):
     np.testing.assert_allclose(seq.poses, case.poses, atol=POSE_ATOL)
     assert [len(seq.scan(k).points) for k in range(len(seq))] == [len(s) for s in case.scans]
     _check_scans(seq, case)
-    assert seq.sensor_preset == "os1-64"
+    assert seq.sensor_preset == "os1-64-gen1"
 
 
 def test_nclt_uint16_coordinates_beyond_64_m(tmp_path):
     path, case, _ = _nclt(tmp_path)
     seq = _quiet_open(path)
-    expected = [nclt_decode_expected(nclt_encode(p, i))
+    expected = [to_liris_points(nclt_decode_expected(nclt_encode(p, i)), NCLT_TO_LIRIS)
                 for p, i in zip(case.scans, case.intensity, strict=True)]
     _check_scans(seq, case, expected, atol=1e-4, intensity=False)
     far = seq.scan(0).points
@@ -205,7 +209,7 @@ def test_nclt_uint16_coordinates_beyond_64_m(tmp_path):
     assert raw.max() > 32767  # the file really holds values an int16 reader misreads
     assert np.array_equal(seq.scan(0).intensity,
                           np.clip(case.intensity[0], 0, 255).astype(np.uint8).astype(np.float32))
-    np.testing.assert_allclose(seq.poses, case.poses, atol=1e-9)
+    np.testing.assert_allclose(seq.poses, to_liris_poses(case.poses, NCLT_TO_LIRIS), atol=1e-9)
 
 
 def test_nclt_nan_ground_truth_row_is_skipped_with_a_count(tmp_path):
@@ -221,8 +225,9 @@ def test_nclt_hits_split_into_revolutions(tmp_path):
     for k in range(len(seq)):
         pts, _ = sorted_by_azimuth(case.scans[k], case.intensity[k])
         want = nclt_decode_expected(nclt_encode(pts, np.zeros(len(pts))))
-        np.testing.assert_allclose(seq.scan(k).points, want, atol=1e-4)
-    np.testing.assert_allclose(seq.poses, case.poses, atol=1e-9)
+        np.testing.assert_allclose(seq.scan(k).points, to_liris_points(want, NCLT_TO_LIRIS),
+                                   atol=1e-4)
+    np.testing.assert_allclose(seq.poses, to_liris_poses(case.poses, NCLT_TO_LIRIS), atol=1e-9)
     np.testing.assert_allclose(seq.times, case.times, atol=1e-6)
 
 
@@ -239,10 +244,10 @@ def test_nclt_session_with_both_formats_is_ambiguous(tmp_path, capsys):
 def test_oxford_planar_4xN_not_Nx4(tmp_path):
     path, case, _ = _oxford(tmp_path)
     seq = _quiet_open(path)
-    _check_scans(seq, case)
+    _check_scans(seq, case, [to_liris_points(p, OXFORD_TO_LIRIS) for p in case.scans])
     interleaved = np.fromfile(seq.scan_paths[0], dtype="<f4").reshape(-1, 4)[:, :3]
     assert not np.allclose(interleaved, case.scans[0], atol=1.0)  # the wrong reading differs
-    np.testing.assert_allclose(seq.poses, case.poses, atol=1e-8)
+    np.testing.assert_allclose(seq.poses, to_liris_poses(case.poses, OXFORD_TO_LIRIS), atol=1e-8)
 
 
 def test_oxford_extrinsics_folder_overrides_the_sdk_values(tmp_path):
@@ -256,7 +261,7 @@ def test_oxford_extrinsics_folder_overrides_the_sdk_values(tmp_path):
     (run / "extrinsics" / "velodyne_left.txt").write_text(" ".join(map(str, lidar)) + "\n")
     write_oxford_ins(run, case, np.linalg.inv(xyzrpy(*ins)) @ xyzrpy(*lidar))
     seq = _quiet_open(run)
-    np.testing.assert_allclose(seq.poses, case.poses, atol=1e-8)
+    np.testing.assert_allclose(seq.poses, to_liris_poses(case.poses, OXFORD_TO_LIRIS), atol=1e-8)
     assert "extrinsics/ins.txt" in seq.pose_source
 
 
@@ -268,10 +273,11 @@ def test_oxford_raw_png_decoded_as_the_sdk(tmp_path):
         points, intensity = oxford_raw_expected(*raw)
         scan = seq.scan(k)
         # both in beam-major order: beam 0's valid firings, then beam 1's ...
-        np.testing.assert_allclose(scan.points, points, atol=1e-4)
+        np.testing.assert_allclose(scan.points, to_liris_points(points, OXFORD_TO_LIRIS),
+                                   atol=1e-4)
         np.testing.assert_allclose(scan.intensity, intensity)
         assert len(scan.points) == int((raw[0] * 0.002 > 1.0).sum())  # the 0.8 m return dropped
-    np.testing.assert_allclose(seq.poses, case.poses, atol=1e-8)
+    np.testing.assert_allclose(seq.poses, to_liris_poses(case.poses, OXFORD_TO_LIRIS), atol=1e-8)
 
 
 @pytest.mark.parametrize("sensor,size", [("Ouster", 26), ("Velodyne", 22), ("Avia", 19)])
@@ -343,7 +349,10 @@ def test_nuscenes_keyframes_poses_and_scene_choice(tmp_path):
     assert len(seq) == len(case.times)  # the sweeps between keyframes are skipped
     assert all("samples/LIDAR_TOP" in str(p) for p in seq.scan_paths)
     np.testing.assert_allclose(seq.poses, case.poses, atol=1e-8)
-    _check_scans(seq, case)
+    kept = [~((np.abs(p[:, 0]) < 1.0) & (np.abs(p[:, 1]) < 1.0)) for p in case.scans]
+    for k, keep in enumerate(kept):
+        np.testing.assert_allclose(seq.scan(k).points, case.scans[k][keep], atol=POINT_ATOL)
+        np.testing.assert_allclose(seq.scan(k).intensity, case.intensity[k][keep], atol=1e-4)
     with pytest.raises(LirisError, match="--scene scene-9999"):
         open_sequence(root, scene="scene-9999")
 
@@ -401,7 +410,7 @@ def test_liris_datasets_lists_every_reader(capsys):
     code, out, _ = run_cli(["datasets", "--json"], capsys)
     listed = json.loads(out)
     assert [d["name"] for d in listed] == list(DATASETS)
-    assert {d["name"]: d["sensor"] for d in listed}["mulran"] == "os1-64"
+    assert {d["name"]: d["sensor"] for d in listed}["mulran"] == "os1-64-gen1"
 
 
 # --- truncated and malformed files: one line, exit 2 ---------------------------------------------

@@ -27,6 +27,7 @@ DATASHEET = {
     "vlp32": (32, -25.0, 15.0, 360.0),
     "os0-128": (128, -45.0, 45.0, 360.0),
     "os1-64": (64, -22.5, 22.5, 360.0),
+    "os1-64-gen1": (64, -16.6, 16.6, 360.0),  # 2018-2019 OS1 data sheet
     "os1-128": (128, -22.5, 22.5, 360.0),
     "os2-128": (128, -11.25, 11.25, 360.0),
     "avia": (None, -38.6, 38.6, 70.4),  # 77.2 deg vertical field
@@ -79,7 +80,7 @@ def test_auto_picks_hdl64_on_the_shared_kitti_scans():
     assert fit_warnings(scans, -3.0, 5.0) == []  # the paper's range fits KITTI
 
 
-@pytest.mark.parametrize("sensor", ["vlp16", "hdl32", "os1-64", "avia", "mid360"])
+@pytest.mark.parametrize("sensor", ["vlp16", "hdl32", "os1-64", "os1-64-gen1", "avia", "mid360"])
 def test_auto_recognises_simulated_sensors(sensor):
     scen = build_scenario(resolve_config("tiny-same", dict(sensor=sensor)))
     rng = np.random.default_rng(2)

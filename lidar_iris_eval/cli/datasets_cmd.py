@@ -10,7 +10,8 @@ from lidar_iris_eval.cli.output import echo_json
 @click.command("datasets")
 @click.option("--json", "as_json", is_flag=True, help="Print the registry as JSON.")
 def command(as_json):
-    """List the dataset readers: the path to give, its pose frame, what liris converts.
+    """List the dataset readers: the path to give, its pose frame, what liris converts,
+    the scans' frame (every reader returns z-up scans) and what it gives as intensity.
 
     A SEQUENCE is detected from its folder; --dataset NAME (on every command that
     opens a sequence) forces a reader. Formats: docs/datasets.md.
@@ -20,6 +21,7 @@ def command(as_json):
     if as_json:
         echo_json([{"name": s.name, "title": s.title, "layout": s.layout,
                     "pose_frame": s.pose_frame, "converts": s.converts, "sensor": s.sensor,
+                    "frame": s.frame, "intensity": s.intensity,
                     "detected_by": s.looks_for, "generic": s.generic}
                    for s in DATASETS.values()])
         return
@@ -31,3 +33,5 @@ def command(as_json):
         click.echo(f"{pad}layout: {spec.layout}")
         click.echo(f"{pad}poses:  {spec.pose_frame}")
         click.echo(f"{pad}liris:  {spec.converts}")
+        click.echo(f"{pad}frame:  {spec.frame}")
+        click.echo(f"{pad}intensity: {spec.intensity}")

@@ -39,6 +39,9 @@ class DatasetSpec:
     opener : ``"module:function"`` under this package, called as
         ``opener(path, poses=..., calib=..., **options)``.
     generic : detected only when no specific dataset matches.
+    frame : the frame of the scans as stored, and what liris turns it into:
+        every reader returns z-up scans (x forward, y left, z up, as KITTI).
+    intensity : what the reader returns as a scan's intensity (field, unit, range).
     """
 
     name: str
@@ -51,6 +54,8 @@ class DatasetSpec:
     detect: Callable[[Path], bool]
     opener: str
     generic: bool = False
+    frame: str = ""
+    intensity: str = ""
 
     def open(self, path: Path, **options):
         """Open ``path`` with this dataset's reader."""
@@ -202,15 +207,20 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "interpolated to every LiDAR frame by frame index (slerp + linear; frames outside the "
         "posed range dropped), then T · cam0_to_pose · inv(cam_to_velo)",
         "hdl64", "a *_drive_NNNN_sync folder with velodyne_points/",
-        lambda p: kitti360_drive(p) is not None, "kitti360:open_kitti360"),
+        lambda p: kitti360_drive(p) is not None, "kitti360:open_kitti360",
+        frame="Velodyne HDL-64E, x forward, y left, z up: kept",
+        intensity="the file's reflectance (f32, 0..1), as stored"),
     DatasetSpec(
         "mulran", "MulRan",
         "<Seq>/Ouster/<ns>.bin + <Seq>/global_pose.csv (open <Seq> or <Seq>/Ouster)",
         "vehicle base frame, ns stamps, more rows than scans",
         "each scan gets the pose at its stamp (interpolated, named tolerance); "
         "T_base · T_base_ouster (calib_base2ouster.txt)",
-        "os1-64", "Ouster/ beside global_pose.csv",
-        lambda p: mulran_sequence(p) is not None, "mulran:open_mulran"),
+        "os1-64-gen1", "Ouster/ beside global_pose.csv",
+        lambda p: mulran_sequence(p) is not None, "mulran:open_mulran",
+        frame=("Ouster OS1-64, z up: kept (its x points backwards on the car, base → Ouster yaw "
+               "179.67°; not turned)"),
+        intensity="the file's fourth f32 (Ouster intensity, raw counts), as stored"),
     DatasetSpec(
         "nclt", "NCLT (velodyne_sync)",
         "<date>/velodyne_sync/<utime>.bin; ground_truth/groundtruth_<date>.csv in <date>, "
@@ -219,14 +229,19 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "uint16 coordinates (·0.005 − 100 m, never int16); pose at each scan stamp; "
         "T_body · T_body_velodyne",
         "hdl32", "velodyne_sync/",
-        lambda p: nclt_session(p) is not None, "nclt:open_nclt_sync"),
+        lambda p: nclt_session(p) is not None, "nclt:open_nclt_sync",
+        frame=("Velodyne frame x left, y forward, z down → turned to x forward, y left, z up (x' "
+               "= y, y' = x, z' = −z); poses turned alike"),
+        intensity="the u8 intensity byte (0..255)"),
     DatasetSpec(
         "nclt-hits", "NCLT (raw velodyne_hits.bin)",
         "<date>/velodyne_hits.bin (open the file or <date>); ground truth as for nclt",
         "body frame (z down), utime µs",
         "packets split into revolutions at the ±180° azimuth wrap; as nclt otherwise",
         "hdl32", "velodyne_hits.bin",
-        lambda p: nclt_hits_file(p) is not None, "nclt:open_nclt_hits"),
+        lambda p: nclt_hits_file(p) is not None, "nclt:open_nclt_hits",
+        frame="as nclt: turned from x left, y forward, z down to x forward, y left, z up",
+        intensity="the u8 intensity byte (0..255)"),
     DatasetSpec(
         "oxford", "Oxford Radar RobotCar (velodyne .bin)",
         "<run>/velodyne_left/<ts>.bin + <run>/velodyne_left.timestamps + <run>/gps/ins.csv "
@@ -235,7 +250,11 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "planar 4×N float32 (never N×4); INS pose at each scan stamp; "
         "T_ins · inv(T_stereo_ins) · T_stereo_velodyne",
         "hdl32", "velodyne_left|right/ with .bin scans",
-        lambda p: _oxford_has(p, ".bin"), "oxford:open_oxford_bin"),
+        lambda p: _oxford_has(p, ".bin"), "oxford:open_oxford_bin",
+        frame=("SDK Velodyne frame x backward, y left, z down (extrinsic yaw ≈ π from the "
+               "x-forward, y-right, z-down stereo frame) → turned by π about y (x' = −x, z' = −z)"
+               " to x forward, y left, z up; poses turned alike"),
+        intensity="the fourth planar f32 row (HDL-32E intensity, 0..255), as stored"),
     DatasetSpec(
         "oxford-raw", "Oxford Radar RobotCar (raw velodyne .png)",
         "<run>/velodyne_left/<ts>.png; timestamps, INS and extrinsics as for oxford",
@@ -243,7 +262,9 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "rows 0-31 intensity, 32-95 ranges (uint16 · 2 mm), 96-97 azimuth; fixed HDL-32E "
         "elevations (SDK); returns under 1 m dropped; poses as for oxford",
         "hdl32", "velodyne_left|right/ with .png scans",
-        lambda p: _oxford_has(p, ".png"), "oxford:open_oxford_png"),
+        lambda p: _oxford_has(p, ".png"), "oxford:open_oxford_png",
+        frame="as oxford: the SDK's points (z down) turned by π about y",
+        intensity="rows 0-31, u8 (0..255)"),
     DatasetSpec(
         "helipr", "HeLiPR",
         "<seq>/LiDAR/{Ouster,Velodyne,Aeva,Avia} (open the sensor folder); "
@@ -253,21 +274,30 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "1691936557946849179); pose at each scan stamp",
         "os2-128 (Ouster), vlp16 (Velodyne), avia (Avia), none (Aeva)",
         "a sensor folder under LiDAR/",
-        lambda p: helipr_sensor(p) is not None, "helipr:open_helipr"),
+        lambda p: helipr_sensor(p) is not None, "helipr:open_helipr",
+        frame="each sensor's own frame, z up: kept",
+        intensity=("Ouster, Velodyne: the f32 intensity field as stored; Avia: u8 reflectivity "
+                   "(0..255); Aeva 25 B (up to stamp 1691936557946849179): the f32 reflectivity "
+                   "field; Aeva 29 B: the trailing f32 intensity as stored, negative and dB-like "
+                   "(about −73..−27 on real files)")),
     DatasetSpec(
         "wild-places", "Wild-Places v1/v2",
         "<seq>/Clouds/<time>.pcd + <seq>/poses_aligned.csv",
         "submap poses (timestamp,x,y,z,qx,qy,qz,qw); clouds are accumulated submaps",
         "pose matched to each submap's stamp; no extrinsic",
         "vlp16", "poses_aligned.csv",
-        _wild_v12, "wildplaces:open_wild_v12"),
+        _wild_v12, "wildplaces:open_wild_v12",
+        frame="submap frame, z up: kept",
+        intensity="the PCD's intensity field as stored, else none"),
     DatasetSpec(
         "wild-places-v3", "Wild-Places v3",
         "<seq>/Clouds_downsampled/<time>.bin + <seq>/submap_poses.csv",
         "submap poses (%time,x,y,z,qx,qy,qz,qw); clouds are accumulated submaps",
         "pose matched to each submap's stamp; no extrinsic",
         "vlp16", "submap_poses.csv",
-        _wild_v3, "wildplaces:open_wild_v3"),
+        _wild_v3, "wildplaces:open_wild_v3",
+        frame="submap frame, z up: kept",
+        intensity="the file's fourth f32, as stored"),
     DatasetSpec(
         "newer-college", "Newer College 2020",
         "<root>/raw_format/ouster_scan/cloud_<sec>_<nsec>.pcd + "
@@ -275,8 +305,10 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "base frame, sec,nsec,x,y,z,qx,qy,qz,qw",
         "pose at each scan stamp; T_base · T_CL (q = 0, 0, 0.924, 0.383; "
         "t = −0.084, −0.025, 0.050)",
-        "os1-64", "ground_truth/registered_poses.csv",
-        _newer_college, "newer_college:open_newer_college"),
+        "os1-64-gen1", "ground_truth/registered_poses.csv",
+        _newer_college, "newer_college:open_newer_college",
+        frame="Ouster OS1-64, z up: kept",
+        intensity="the PCD's intensity field as stored, else none"),
     DatasetSpec(
         "nuscenes", "nuScenes",
         "<dataroot> with v1.0-*/ JSON tables and samples/LIDAR_TOP/*.pcd.bin "
@@ -285,43 +317,58 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
         "keyframes of LIDAR_TOP walked through the next tokens; "
         "pose = ego_pose · calibrated_sensor (quaternions w, x, y, z)",
         "hdl32", "v1.0-*/sample_data.json",
-        lambda p: nuscenes_tables(p) is not None, "nuscenes:open_nuscenes"),
+        lambda p: nuscenes_tables(p) is not None, "nuscenes:open_nuscenes",
+        frame=("LIDAR_TOP frame (x right, y forward, z up on the car): kept; ego returns dropped "
+               "as the devkit does (|x| < 1.0 m and |y| < 1.0 m, remove_close)"),
+        intensity="the record's fourth f32 (HDL-32E intensity, 0..255), as stored"),
     DatasetSpec(
         "boreas", "Boreas",
         "<seq>/lidar/<µs>.bin + <seq>/applanix/lidar_poses.csv",
         "LiDAR frame in ENU (GPSTime µs, x, y, z, …, roll, pitch, yaw)",
         "float32 × 6 records; pyboreas rotation convention; pose at each scan stamp",
         None, "applanix/lidar_poses.csv",
-        _boreas, "boreas:open_boreas"),
+        _boreas, "boreas:open_boreas",
+        frame="Velodyne Alpha Prime frame, z up: kept",
+        intensity="the record's fourth f32, as stored"),
     DatasetSpec(
         "apollo", "Apollo-SouthBay",
         "<route>/<date>/pcds/<n>.pcd + <route>/<date>/poses/gt_poses.txt",
         "LiDAR frame (index, time, x, y, z, qx, qy, qz, qw)",
         "pose by the index column = pcd file number; no extrinsic",
         "hdl64", "poses/gt_poses.txt",
-        _apollo, "apollo:open_apollo"),
+        _apollo, "apollo:open_apollo",
+        frame="LiDAR frame, z up: kept",
+        intensity="the PCD's intensity field as stored, else none"),
     DatasetSpec(
         "objects", "GOSMatch object layout",
         "a folder with bow.txt and centroids/ (the GOSMatch authors' files)",
         "KITTI camera frame", "inv(Tr) · T · Tr", None, "bow.txt + centroids/",
-        _objects, "generic:open_objects_layout", generic=True),
+        _objects, "generic:open_objects_layout", generic=True,
+        frame="KITTI Velodyne frame (object centroids): kept",
+        intensity="none"),
     DatasetSpec(
         "kitti", "KITTI odometry / SemanticKITTI (and liris simulate)",
         "sequences/NN with velodyne/%06d.bin, calib.txt, poses.txt or ../../poses/NN.txt",
         "left camera frame", "inv(Tr) · T · Tr", "hdl64", "velodyne/",
-        _kitti, "generic:open_kitti_layout", generic=True),
+        _kitti, "generic:open_kitti_layout", generic=True,
+        frame="Velodyne, x forward, y left, z up (the reference): kept",
+        intensity="the file's reflectance (f32, 0..1 on KITTI), as stored"),
     DatasetSpec(
         "rosbag", "ROS 1 / ROS 2 bag",
         "a .bag, .db3 or .mcap file, or a ROS 2 bag folder (metadata.yaml)",
         "as published (odometry / pose topic or a pose file)",
         "pose at each message stamp (see docs)", None, ".bag/.db3/.mcap or metadata.yaml",
-        _rosbag, "generic:open_rosbag_file", generic=True),
+        _rosbag, "generic:open_rosbag_file", generic=True,
+        frame="the cloud's frame as published: kept (not turned)",
+        intensity="the message's intensity field as published, else none"),
     DatasetSpec(
         "folder", "folder of scans",
         "a folder of .bin/.npy/.pcd scans with poses.txt, poses_tum.txt or *.tum",
         "KITTI camera frame (calib.txt) or LiDAR (--lidar-frame-poses)",
         "inv(Tr) · T · Tr, or none; TUM poses matched by time", None,
-        ".bin/.npy/.pcd scan files", _folder, "generic:open_scan_folder", generic=True),
+        ".bin/.npy/.pcd scan files", _folder, "generic:open_scan_folder", generic=True,
+        frame="as stored: kept (not turned)",
+        intensity="the file's fourth column / intensity field as stored, else none"),
 )}
 
 

@@ -41,6 +41,12 @@ class DatasetSequence(Sequence):
     sensor_preset : the ``--sensor`` preset of the dataset's LiDAR, or None.
     pose_source : the pose file and the conversion applied, for messages.
     unmatched : scans dropped because no pose was within the tolerance.
+    to_liris : ``(3, 3)`` rotation from the dataset's sensor frame to liris's
+        (x forward, y left, z up, as KITTI), applied to every scan read; the
+        poses are already those of the rotated frame (see :func:`build`).
+        None where the dataset's frame is already z-up.
+    scan_note : what the reader does to the points beyond decoding them (frame
+        rotation, ego-return removal), hashed into :meth:`fingerprint`.
     """
 
     reader: Callable[..., Scan] | None = None
@@ -49,14 +55,20 @@ class DatasetSequence(Sequence):
     sensor_preset: str | None = None
     pose_source: str = ""
     unmatched: int = 0
+    to_liris: np.ndarray | None = None
+    scan_note: str = ""
 
     def scan(self, index: int) -> Scan:
-        """Points (sensor frame) and intensity of scan ``index``."""
+        """Points (sensor frame, z up) and intensity of scan ``index``."""
         if self.reader is None:
             return super().scan(index)
         if self.records is None:
-            return self.reader(self.scan_paths[index])
-        return self.reader(self.scan_paths[index], self.records[index])
+            scan = self.reader(self.scan_paths[index])
+        else:
+            scan = self.reader(self.scan_paths[index], self.records[index])
+        if self.to_liris is None:
+            return scan
+        return scan._replace(points=rotate_points(scan.points, self.to_liris))
 
     def fingerprint(self) -> str:
         """Sampled hash of each distinct scan file, plus the per-scan records."""
@@ -66,7 +78,20 @@ class DatasetSequence(Sequence):
         if self.records is not None:
             digest.update(repr(self.records).encode())
         digest.update(self.dataset.encode())
+        digest.update(self.scan_note.encode())
         return digest.hexdigest()[:16]
+
+
+def rotate_points(points: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """``points @ rotation.T`` as float32; exact for the axis flips and swaps used here."""
+    rotation = np.asarray(rotation)
+    if np.all(np.isin(rotation, (-1.0, 0.0, 1.0))):  # a signed permutation: no rounding
+        out = np.empty_like(points, dtype=np.float32)
+        for row in range(3):
+            col = int(np.flatnonzero(rotation[row])[0])
+            out[:, row] = points[:, col] * np.float32(rotation[row, col])
+        return out
+    return (np.asarray(points, np.float64) @ rotation.T).astype(np.float32)
 
 
 # --- options ------------------------------------------------------------------
@@ -288,15 +313,28 @@ def ns_to_seconds(stamps: np.ndarray, per_second: int) -> np.ndarray:
 def build(dataset: str, path: Path, name: str, scan_paths: list[Path], poses: np.ndarray,
           reader: Callable[..., Scan], sensor: str | None, pose_source: str,
           times: np.ndarray | None = None, unmatched: int = 0, records: list | None = None,
-          frame_ids: np.ndarray | None = None) -> DatasetSequence:
-    """The :class:`DatasetSequence` every reader returns."""
+          frame_ids: np.ndarray | None = None, to_liris: np.ndarray | None = None,
+          scan_note: str = "") -> DatasetSequence:
+    """The :class:`DatasetSequence` every reader returns.
+
+    ``poses`` are those of the dataset's sensor frame; with ``to_liris`` (the
+    rotation taking that frame's coordinates to liris's z-up frame) they are
+    turned into poses of the rotated frame, ``T · to_liris.T``, so the world
+    points are unchanged.
+    """
     if frame_ids is None:
         frame_ids = np.arange(len(scan_paths))
+    poses = np.asarray(poses, float)
+    if to_liris is not None:
+        to_liris = np.asarray(to_liris, dtype=np.float64)
+        poses = poses @ se3(to_liris.T, np.zeros(3))
+        scan_note = f"to_liris={to_liris.round(12).tolist()}; {scan_note}"
     return DatasetSequence(
-        name=name, path=path, scan_paths=list(scan_paths), poses=np.asarray(poses, float),
+        name=name, path=path, scan_paths=list(scan_paths), poses=poses,
         times=None if times is None else np.asarray(times, dtype=np.float64),
         frame_ids=np.asarray(frame_ids), reader=reader, records=records, dataset=dataset,
-        sensor_preset=sensor, pose_source=pose_source, unmatched=unmatched,
+        sensor_preset=sensor, pose_source=pose_source, unmatched=unmatched, to_liris=to_liris,
+        scan_note=scan_note,
     )
 
 

@@ -73,5 +73,5 @@ def open_mulran(path: Path, poses: str | Path | None = None, calib=None,
                                          pose_path)
     lidar = matched @ base_to_ouster()
     return build("mulran", seq_dir, seq_dir.name, pick(scans, keep), lidar, read_kitti_bin,
-                 "os1-64", f"{pose_path} (base frame) · T_base_ouster",
+                 "os1-64-gen1", f"{pose_path} (base frame) · T_base_ouster",
                  times=ns_to_seconds(scan_ns[keep], 10**9), unmatched=dropped, frame_ids=keep)

@@ -3,8 +3,14 @@
 Both formats store a point in 8 bytes: **uint16** x, y, z (metres =
 ``value · 0.005 − 100``), uint8 intensity, uint8 laser id, little-endian.
 Reading the coordinates as int16 (as some loaders do) wraps every coordinate
-above about 63.8 m; here they are uint16. Points stay in the Velodyne frame
-as recorded (z points down, like NCLT's body frame).
+above about 63.8 m; here they are uint16.
+
+Frame: NCLT's Velodyne frame is z-down (the dataset's ``read_vel_sync.py``
+plots ``-z``; the road lies at positive z) and, by the body → Velodyne extrinsic
+below (yaw −90.703° in the x-forward, y-right, z-down body frame), its x axis
+points left and its y axis forward. liris turns every scan into its x-forward,
+y-left, z-up frame (as KITTI) with :data:`TO_LIRIS` (x' = y, y' = x, z' = −z:
+a half turn about the horizontal axis between x and y), and the poses with it.
 
 ``velodyne_hits.bin`` is a stream of packets: an 8-byte magic (four uint16
 44444), a uint32 hit count, a uint64 utime, 4 padding bytes, then the hits.
@@ -53,6 +59,8 @@ PACKET_MAGIC = 44444
 PACKET_HEADER_BYTES = 24  # 4 x uint16 magic, uint32 count, uint64 utime, 4 padding
 #: body -> Velodyne: metres and degrees (x, y, z, roll, pitch, yaw)
 BODY_TO_VELODYNE = (0.002, -0.004, -0.957, 0.807, 0.166, -90.703)
+#: NCLT's Velodyne frame (x left, y forward, z down) -> liris's (x forward, y left, z up)
+TO_LIRIS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 #: seconds between a scan stamp and the nearest ground-truth sample
 TOLERANCE = 0.1
 
@@ -110,7 +118,8 @@ def open_nclt_sync(path: Path, poses=None, calib=None, tolerance: float = TOLERA
     pose_path, keep, matched, dropped = _poses_for(session, poses, utime * 1e-6, tolerance)
     return build("nclt", session, session.name, pick(scans, keep), matched, read_sync_scan,
                  "hdl32", f"{pose_path} (body frame) · T_body_velodyne",
-                 times=utime[keep] * 1e-6, unmatched=dropped, frame_ids=keep)
+                 times=utime[keep] * 1e-6, unmatched=dropped, frame_ids=keep,
+                 to_liris=TO_LIRIS)
 
 
 # --- raw velodyne_hits.bin ---------------------------------------------------------
@@ -235,4 +244,4 @@ def open_nclt_hits(path: Path, poses=None, calib=None, tolerance: float = TOLERA
     return build("nclt-hits", session, session.name, [hits] * len(keep), matched,
                  read_hits_scan, "hdl32", f"{pose_path} (body frame) · T_body_velodyne",
                  times=utime[keep] * 1e-6, unmatched=dropped,
-                 records=[records[i] for i in keep], frame_ids=keep)
+                 records=[records[i] for i in keep], frame_ids=keep, to_liris=TO_LIRIS)

@@ -62,5 +62,5 @@ def open_newer_college(path: Path, poses=None, calib=None, tolerance: float = TO
     pose_times = table[:, 0] + table[:, 1] * 1e-9
     keep, matched, dropped = match_scans(times, pose_times, base, tolerance, pose_path)
     return build("newer-college", root, root.name, pick(scans, keep), matched @ base_to_lidar(),
-                 read_pcd, "os1-64", f"{pose_path} (base frame) · T_CL", times=times[keep],
+                 read_pcd, "os1-64-gen1", f"{pose_path} (base frame) · T_CL", times=times[keep],
                  unmatched=dropped, frame_ids=keep)

@@ -7,10 +7,22 @@ the ``next`` tokens from the scene's first sample. A record is x, y, z,
 intensity, ring (20 bytes). The LiDAR pose of a keyframe is
 ``ego_pose · calibrated_sensor`` (global ← ego ← LIDAR_TOP); nuScenes
 quaternions are stored (w, x, y, z). Times are µs.
+
+Ego returns: a LIDAR_TOP sweep holds many returns from the car itself (its
+roof and body, at elevations down to about −55°). As the devkit does
+(``LidarPointCloud.remove_close`` with ``from_file_multisweep``'s
+``min_distance`` = 1.0 m), every point with ``|x| < r`` *and* ``|y| < r`` in
+the sensor frame is dropped, a 2r × 2r square around the sensor at every
+height, r = :data:`EGO_RADIUS`; ``ego_radius=`` of :func:`open_nuscenes`
+changes it (0 keeps every point). The LIDAR_TOP frame (x right, y forward, z
+up on the car) is z-up already and is kept.
+
+Intensity: the record's fourth float, 0..255 as stored by the devkit.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -33,11 +45,22 @@ POINT = record_dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<
                       ("ring", "<f4")])
 CHANNEL = "LIDAR_TOP"
 TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
+#: metres: points with |x| < r and |y| < r (sensor frame) are the car's own returns and are
+#: dropped, as the devkit's ``remove_close(min_distance=1.0)``
+EGO_RADIUS = 1.0
 
 
-def read_nuscenes_scan(path: Path) -> Scan:
-    """One ``*.pcd.bin`` LiDAR file."""
+def ego_returns(points: np.ndarray, radius: float = EGO_RADIUS) -> np.ndarray:
+    """Mask of the points the devkit's ``remove_close(radius)`` drops (``|x|, |y| < radius``)."""
+    return (np.abs(points[:, 0]) < radius) & (np.abs(points[:, 1]) < radius)
+
+
+def read_nuscenes_scan(path: Path, ego_radius: float = EGO_RADIUS) -> Scan:
+    """One ``*.pcd.bin`` LiDAR file, without the ego vehicle's returns (:func:`ego_returns`)."""
     data = read_records(path, POINT, "nuScenes .pcd.bin")
+    if ego_radius > 0:
+        xyz = np.stack([data["x"], data["y"], data["z"]], axis=1)
+        data = data[~ego_returns(xyz, ego_radius)]
     return clean_points(np.stack([data["x"], data["y"], data["z"]], axis=1), data["intensity"],
                         path)
 
@@ -65,8 +88,14 @@ def _pose(record: dict, source: Path) -> np.ndarray:
 
 
 def open_nuscenes(path: Path, poses=None, calib=None, tolerance=None, scene: str | None = None,
-                  **options) -> Sequence:
-    """Open one scene of a nuScenes data root (``scene=`` names it when there are several)."""
+                  ego_radius: float = EGO_RADIUS, **options) -> Sequence:
+    """Open one scene of a nuScenes data root (``scene=`` names it when there are several).
+
+    ``ego_radius`` (m): half the side of the square around the sensor whose
+    points are dropped as the car's own returns (:data:`EGO_RADIUS`; 0 keeps all).
+    """
+    if not (np.isfinite(ego_radius) and ego_radius >= 0):
+        raise LirisError("ego_radius", f"must be a finite number of metres >= 0, not {ego_radius}")
     check_options("nuscenes", {**options, **({"calib": calib} if calib else {}),
                                **({"poses": poses} if poses else {})})
     tables_dir = nuscenes_tables(path)
@@ -113,5 +142,6 @@ def open_nuscenes(path: Path, poses=None, calib=None, tolerance=None, scene: str
         nxt = record.get("next")
         record = data.get(nxt) if nxt else None
     return build("nuscenes", root, str(chosen.get("name", root.name)), files, np.array(lidar),
-                 read_nuscenes_scan, "hdl32",
-                 f"{tables_dir} (ego_pose · calibrated_sensor)", times=np.array(times))
+                 functools.partial(read_nuscenes_scan, ego_radius=float(ego_radius)), "hdl32",
+                 f"{tables_dir} (ego_pose · calibrated_sensor)", times=np.array(times),
+                 scan_note=f"ego returns |x|,|y| < {float(ego_radius)} m dropped")

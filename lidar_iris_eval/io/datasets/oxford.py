@@ -15,6 +15,16 @@ T_stereo_velodyne``, the SDK's ``extrinsics/ins.txt`` and
 ``extrinsics/<side>.txt`` (x y z roll pitch yaw, relative to the stereo
 camera), read from ``extrinsics/`` in the run folder or its parent when
 present, else the SDK's values below.
+
+Frame: the SDK's Velodyne frame is z-down: its points put the HDL-32E's beams
+at −10.7..+30.7° of "elevation" (``z = sin(e)·r`` with the SDK's elevation
+table, whose real beams span +10.7..−30.7°), so the road lies at z ≈ +1.6 m,
+and its extrinsics (``velodyne_left|right.txt``, yaw −3.134 / −3.136 rad from
+the stereo camera's x-forward, y-right, z-down frame; ``ins.txt``, northing /
+easting / down) make its x axis point backwards and its y axis left. liris turns
+every scan by π about y (:data:`TO_LIRIS`: x → −x, z → −z, y kept) into its
+x-forward, y-left, z-up frame (as KITTI), and the poses with it (``T ·
+TO_LIRISᵀ``), so ground-truth distances are unchanged.
 """
 
 from __future__ import annotations
@@ -55,8 +65,12 @@ RANGE_RESOLUTION = 0.002  # m per unit
 MINIMUM_RANGE = 1.0  # m
 BASE_TO_FIRE_HEIGHT = 0.090805  # m
 PNG_ROWS = 106
-#: seconds between a scan stamp and the nearest INS sample (INS runs at 50 Hz)
-TOLERANCE = 0.1
+#: the SDK's Velodyne frame (x backward, y left, z down on the car) -> liris's
+#: (x forward, y left, z up): a half turn about y
+TO_LIRIS = np.diag([-1.0, 1.0, -1.0])
+#: seconds between a scan stamp and the nearest INS sample: one revolution of the
+#: HDL-32E at the 20 Hz the scans are stamped at (50 ms apart; the INS runs at 50 Hz)
+TOLERANCE = 0.05
 INS_COLUMNS = ("timestamp", "northing", "easting", "down", "roll", "pitch", "yaw")
 
 
@@ -167,7 +181,8 @@ def _open(path: Path, suffix: str, reader, dataset: str, poses, calib, tolerance
     keep, matched, dropped = match_scans(stamps * 1e-6, ins_times, ins_poses, tolerance, pose_path)
     return build(dataset, run, run.name, pick(scans, keep), matched @ ins_to_lidar, reader,
                  "hdl32", f"{pose_path} (INS) · inv({ins_source}) · {lidar_source}",
-                 times=stamps[keep] * 1e-6, unmatched=dropped, frame_ids=keep)
+                 times=stamps[keep] * 1e-6, unmatched=dropped, frame_ids=keep,
+                 to_liris=TO_LIRIS)
 
 
 def open_oxford_bin(path: Path, poses=None, calib=None, tolerance: float = TOLERANCE,
