@@ -27,6 +27,7 @@ from lidar_iris_eval.evaluation.protocol1 import (
     Protocol1Result,
     protocol1_inputs,
     score_protocol1,
+    scoring_rules,
     settings_from,
     stacked_descriptors,
 )
@@ -174,9 +175,11 @@ def protocols_1_and_2(
         k = s.candidates if s.candidates is not None else descriptor.default_candidates()
         matches = two_stage_matches(descriptor, descriptors, limits, k, progress)
         affinity, rule = two_stage_affinity(descriptor, descriptors, k, None), PROTOCOL2_RULE
-        p1 = score_protocol1(matches, positions, gt1, s, forward, lidar_poses)
+        p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
+                            **scoring_rules(s))
         return p1, score_protocol2(affinity, gt2, rule)
     affinity, curve, matches = _streamed(descriptor, descriptors, gt2, limits, s.pair_budget,
                                          progress, affinity_storage, executor)
-    p1 = score_protocol1(matches, positions, gt1, s, forward, lidar_poses)
+    p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
+                            **scoring_rules(s))
     return p1, score_protocol2(affinity, gt2, ALL_PAIRS_RULE, curve)
