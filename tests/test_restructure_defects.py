@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,8 +36,14 @@ def test_docs_runnable_snippets_execute(page, tmp_path, monkeypatch):
 
     Marker (documented here, used in docs/*.md): ``<!-- runnable -->`` or
     ``<!-- runnable: my_module.py -->`` on the line immediately before a ```python fence.
+    The folder holds ``sim/tiny-mixed`` (``liris simulate sim/tiny-mixed --world tiny-mixed``),
+    the sequence the docs' examples name.
     """
+    from lidar_iris_eval.cli import cli
+
     monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(cli, ["simulate", "sim/tiny-mixed", "--world", "tiny-mixed"])
+    assert result.exit_code == 0, result.output
     monkeypatch.syspath_prepend(str(tmp_path))
     ran = 0
     for m in _MARKED.finditer(page.read_text()):
@@ -122,8 +129,6 @@ def test_blocks_names_the_executor_module():
 # --- D4: the --convention help lists the presets table -------------------------------------
 
 def test_eval_help_lists_a_new_preset(monkeypatch):
-    from click.testing import CliRunner
-
     from lidar_iris_eval.cli import cli as main
     from lidar_iris_eval.evaluation import conventions
     from lidar_iris_eval.evaluation.settings import Settings
@@ -182,3 +187,38 @@ def test_score_protocol1_takes_the_denominator_value_not_settings():
         score_protocol1(matches, positions, gt, Settings(recall_denominator="accepted"))
     by_value = score_protocol1(matches, positions, gt, "accepted")
     assert by_value.metrics["n_queries"] == len(matches.query)
+
+
+# --- D1: protocols_1_and_2 honours candidates for a global descriptor ---------------------------
+
+@pytest.fixture(scope="module")
+def tiny_mixed(tmp_path_factory):
+    from lidar_iris_eval.cli import cli
+
+    out = tmp_path_factory.mktemp("sim") / "tiny-mixed"
+    result = CliRunner().invoke(cli, ["simulate", str(out), "--world", "tiny-mixed"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_protocols_1_and_2_honours_candidates(tiny_mixed, tmp_path):
+    import numpy as np
+
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate
+    from lidar_iris_eval.evaluation.protocol1 import protocol1
+    from lidar_iris_eval.evaluation.protocol2 import protocol2, protocols_1_and_2
+
+    settings = Settings(candidates=3)
+    run = evaluate(tiny_mixed, ["scan-context"], protocols=(1,), settings=settings,
+                   cache=tmp_path / "cache")
+    result = run.results[0]
+    desc, stacked = result.descriptor, result.db.descriptors
+    positions = run.sequence.positions(run.pose_frame)
+    alone = protocol1(desc, stacked, positions, settings)
+    p1, p2 = protocols_1_and_2(desc, stacked, positions, settings)
+    assert alone.matches.source == "candidates:3"
+    assert p1.matches.source == alone.matches.source
+    np.testing.assert_array_equal(p1.matches.match, alone.matches.match)
+    assert p1.metrics["ap"] == alone.metrics["ap"]
+    exhaustive = protocol2(desc, stacked, positions, settings.replace(candidates=None))
+    assert p2.metrics == exhaustive.metrics
