@@ -21,7 +21,7 @@ def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("loops")
     seq = loop_sequence(root / "seq")
     out = root / "run"
-    code, _, err = run_cli(["eval", seq, "--descriptor", "scan-context", "--protocol", "1",
+    code, _, err = run_cli(["eval", seq, "--descriptor", "scan-context,m2dp", "--protocol", "1",
                             "--exclude", "10", "--out", out, "--cache-dir", root / "cache",
                             "--export-loops", root / "loops.txt", "--quiet"], _Capsys())
     assert code == 0, err
@@ -35,14 +35,17 @@ class _Capsys:  # run_cli needs only readouterr; module-scoped fixtures cannot t
         return R()
 
 
-def test_matches_csv_reproduces_protocol1(run):
+@pytest.mark.parametrize("k, name", [(0, "scan-context"), (1, "m2dp")])
+def test_matches_csv_reproduces_protocol1(run, k, name):
     seq, out, _ = run
-    row = json.loads((out / "metrics.json").read_text())["results"][0]
-    ev = evaluate_loops(seq, [out / "protocol1/scan-context/matches.csv"], Settings(exclude=10))
+    row = json.loads((out / "metrics.json").read_text())["results"][k]
+    assert row["descriptor"] == name
+    ev = evaluate_loops(seq, [out / f"protocol1/{name}/matches.csv"], Settings(exclude=10))
     mine = ev.rows[0]
     assert mine["descriptor"] == "loops:matches"
     for key in ("ap", "f1_max", "r100p", "ep", "n_revisits", "n_true_top1"):
         assert mine[key] == row[key], key
+    print(name, {key: row[key] for key in ("ap", "f1_max", "r100p")})
 
 
 def test_export_txt_gives_precision_recall_at_f1max(run):
@@ -50,9 +53,9 @@ def test_export_txt_gives_precision_recall_at_f1max(run):
     pr = pd.read_csv(out / "protocol1/scan-context/pr.csv")
     row = json.loads((out / "metrics.json").read_text())["results"][0]
     at = pr[pr.threshold == row["f1_threshold"]].iloc[0]
-    ev = evaluate_loops(seq, [txt], Settings(exclude=10))
+    ev = evaluate_loops(seq, [txt.with_name("loops-scan-context.txt")], Settings(exclude=10))
     mine = ev.rows[0]
-    assert read_loops(txt).format == "liris-txt"
+    assert read_loops(txt.with_name("loops-scan-context.txt")).format == "liris-txt"
     assert mine["loops_precision"] == pytest.approx(at.precision, abs=1e-12)
     assert mine["loops_recall"] == pytest.approx(at.recall, abs=1e-12)
 
@@ -91,3 +94,31 @@ def test_g2o_loop_edges_and_one_based_pairs_agree(tmp_path, run):
     ev1 = evaluate_loops(seq, [tmp_path / "p.txt"], Settings(exclude=10), index_base=1)
     assert ev1.rows[0]["loops_tp"] == g["loops_tp"]
     assert p["n_loops"] == 3
+
+
+def _naive_ap(is_true: np.ndarray, distance: np.ndarray, n_positives: int) -> float:
+    """AP = sum (R_k - R_{k-1}) P_k, one query at a time (distinct distances)."""
+    order = np.argsort(distance)
+    tp = fp = 0
+    ap = recall_before = 0.0
+    for k in order:
+        tp, fp = tp + int(is_true[k]), fp + int(not is_true[k])
+        recall = tp / n_positives
+        ap += (recall - recall_before) * tp / (tp + fp)
+        recall_before = recall
+    return ap
+
+
+def test_shuffled_scores_match_an_independent_ap(run, tmp_path):
+    # the run's methods are perfect here (AP 1), so shuffle the distances: AP then differs
+    # from 1 and is checked against a hand-written AP over the revisit count
+    seq, out, _ = run
+    table = pd.read_csv(out / "protocol1/scan-context/matches.csv")
+    rng = np.random.default_rng(3)
+    table["distance"] = rng.permutation(len(table)) + 1.0
+    table.to_csv(tmp_path / "shuffled.csv", index=False)
+    row = evaluate_loops(seq, [tmp_path / "shuffled.csv"], Settings(exclude=10)).rows[0]
+    expected = _naive_ap(table.is_true.to_numpy(bool), table.distance.to_numpy(),
+                         int(table.is_revisit.sum()))
+    assert 0.1 < expected < 0.9
+    assert row["ap"] == pytest.approx(expected, abs=1e-12)
