@@ -122,3 +122,22 @@ def test_shuffled_scores_match_an_independent_ap(run, tmp_path):
                          int(table.is_revisit.sum()))
     assert 0.1 < expected < 0.9
     assert row["ap"] == pytest.approx(expected, abs=1e-12)
+
+
+def test_cli_loops_run_and_bad_file(run, tmp_path, capsys):
+    from conftest import assert_one_line_error
+
+    seq, out, txt = run
+    matches = out / "protocol1/m2dp/matches.csv"
+    code, stdout, err = run_cli(["eval", seq, "--loops", matches, "--loops",
+                                 txt.with_name("loops-scan-context.txt"), "--exclude", "10",
+                                 "--out", tmp_path / "lr"], capsys)
+    assert code == 0, err
+    rows = json.loads((tmp_path / "lr/metrics.json").read_text())["results"]
+    assert [r["descriptor"] for r in rows] == ["loops:matches", "loops:loops-scan-context"]
+    code, stdout, err = run_cli(["show", tmp_path / "lr"], capsys)
+    assert code == 0 and "loops:matches" in stdout
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 0 9 0 0 0 0 0 0 1\n")
+    code, _, err = run_cli(["eval", seq, "--loops", bad, "--out", tmp_path / "x"], capsys)
+    assert_one_line_error(code, err, "bad.g2o:2", "vertex 9")
