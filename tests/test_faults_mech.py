@@ -102,3 +102,66 @@ def test_ctrl_c_during_eval_matching_is_one_line(seq, tmp_path):
                           tmp_path, "esf:")
     assert_interrupted(code, err)
     assert not (tmp_path / "O").exists()
+
+
+# ---- non-finite and non-rotation pose rows: one error naming file:line ------------------
+
+
+def one_error(res: subprocess.CompletedProcess, *fragments: str) -> str:
+    assert res.returncode == 2, res.stderr[-800:]
+    assert "Traceback" not in res.stderr, res.stderr[-800:]
+    errors = [line for line in res.stderr.splitlines() if line.startswith("liris: error:")]
+    assert len(errors) == 1, res.stderr[-800:]
+    for fragment in fragments:
+        assert fragment in errors[0], (fragment, errors[0])
+    return errors[0]
+
+
+def nan_in_line(path: Path, index: int, field: int) -> int:
+    """Put NaN in field ``field`` (comma-separated) of line ``index``; return its 1-based number."""
+    lines = path.read_text().splitlines()
+    parts = lines[index].split(",")
+    parts[field] = "nan"
+    lines[index] = ",".join(parts)
+    path.write_text("\n".join(lines) + "\n")
+    return index + 1
+
+
+def test_nan_in_mulran_global_pose_names_the_line(tmp_path):
+    from dataset_writers import loop_case, write_mulran
+
+    seq = write_mulran(tmp_path, loop_case(1))
+    number = nan_in_line(seq / "global_pose.csv", 3, 4)
+    one_error(liris(["gt", seq], tmp_path), f"global_pose.csv:{number}", "NaN or inf")
+
+
+def test_inf_in_oxford_ins_names_the_line(tmp_path):
+    from dataset_writers import loop_case, write_oxford_bin
+
+    run = write_oxford_bin(tmp_path, loop_case(2))
+    ins = run / "gps" / "ins.csv"
+    lines = ins.read_text().splitlines()
+    parts = lines[3].split(",")
+    parts[5] = "inf"  # northing
+    lines[3] = ",".join(parts)
+    ins.write_text("\n".join(lines) + "\n")
+    one_error(liris(["gt", run], tmp_path), "ins.csv:4", "NaN or inf")
+
+
+def trajectory(path: Path, bad: str | None) -> Path:
+    lines = [f"1 0 0 {2.0 * i} 0 1 0 0 0 0 1 0" for i in range(8)]
+    if bad is not None:
+        lines[5] = bad
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("bad, fragment", [
+    (" ".join(["nan"] * 12), "NaN or inf"),
+    ("2 0 0 10 0 2 0 0 0 0 2 0", "not orthonormal"),  # was accepted, halving translations
+])
+def test_simulate_trajectory_row_is_checked_like_every_pose_file(tmp_path, bad, fragment):
+    path = trajectory(tmp_path / "t.txt", bad)
+    one_error(liris(["simulate", "-q", "X", "--trajectory", path], tmp_path),
+              "t.txt:6", fragment)
+    assert not (tmp_path / "X").exists()

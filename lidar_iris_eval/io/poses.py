@@ -47,6 +47,16 @@ def check_rotations(poses: np.ndarray, path: Path, line_numbers: list[int] | Non
         raise LirisError(where, f"{what}: {rotation_problem(rotations[first])}")
 
 
+def check_finite(values, where: str, what: str) -> None:
+    """Raise one LirisError at ``where`` (``file:line``) if a value of a pose row is NaN or inf.
+
+    Every pose reader (KITTI, TUM, the dataset tables, Oxford's INS) calls it
+    per row, so a non-finite pose never reaches the SVDs and interpolations.
+    """
+    if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
+        raise LirisError(where, f"malformed {what} line (NaN or inf)")
+
+
 def _read_rows(path: Path, expected: int, what: str) -> np.ndarray:
     """Parse a whitespace table whose rows each hold ``expected`` numbers."""
     return _read_numbered_rows(path, expected, what)[0]
@@ -72,8 +82,7 @@ def _read_numbered_rows(path: Path, expected: int, what: str) -> tuple[np.ndarra
                 f"{path}:{number}",
                 f"malformed {what} line: {len(values)} numbers, expected {expected}",
             )
-        if not np.all(np.isfinite(values)):
-            raise LirisError(f"{path}:{number}", f"malformed {what} line (NaN or inf)")
+        check_finite(values, f"{path}:{number}", what)
         rows.append(values)
         numbers.append(number)
     if not rows:
