@@ -165,3 +165,24 @@ def test_simulate_trajectory_row_is_checked_like_every_pose_file(tmp_path, bad, 
     one_error(liris(["simulate", "-q", "X", "--trajectory", path], tmp_path),
               "t.txt:6", fragment)
     assert not (tmp_path / "X").exists()
+
+
+# ---- TUM stamps must increase ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("swap", ["duplicate", "unsorted"])
+def test_tum_stamps_out_of_order_name_the_first_bad_line(seq, tmp_path, swap):
+    from scipy.spatial.transform import Rotation
+
+    from lidar_iris_eval.io.poses import read_kitti_poses
+
+    poses = read_kitti_poses(seq / "poses.txt")
+    stamps = [0.1 * i for i in range(len(poses))]
+    stamps[7] = stamps[6] if swap == "duplicate" else stamps[6] - 0.05
+    lines = ["# timestamp x y z qx qy qz qw"]
+    for t, pose in zip(stamps, poses, strict=True):
+        q = Rotation.from_matrix(pose[:3, :3]).as_quat()
+        lines.append(" ".join(f"{v:.9f}" for v in (t, *pose[:3, 3], *q)))
+    (tmp_path / "t.tum").write_text("\n".join(lines) + "\n")
+    # line 1 is the comment, so stamp 7 is on line 9
+    one_error(liris(["gt", seq, "--poses", "t.tum"], tmp_path), "t.tum:9", "increase")

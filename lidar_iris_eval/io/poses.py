@@ -123,7 +123,14 @@ def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
 def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM trajectory ``t x y z qx qy qz qw``: ``(times (N,), poses (N, 4, 4))``."""
     path = Path(path)
-    rows = _read_rows(path, 8, "TUM pose")
+    rows, numbers = _read_numbered_rows(path, 8, "TUM pose")
+    steps = np.diff(rows[:, 0])
+    if np.any(steps <= 0):
+        k = int(np.argmax(steps <= 0)) + 1
+        kind = "repeats" if steps[k - 1] == 0 else "is earlier than"
+        raise LirisError(f"{path}:{numbers[k]}",
+                         f"TUM pose stamps must increase: {rows[k, 0]:.9g} {kind} the stamp "
+                         f"{rows[k - 1, 0]:.9g} of line {numbers[k - 1]}")
     quats = rows[:, 4:8]
     norms = np.linalg.norm(quats, axis=1)
     if np.any(norms < 1e-9):
