@@ -186,3 +186,52 @@ def test_tum_stamps_out_of_order_name_the_first_bad_line(seq, tmp_path, swap):
     (tmp_path / "t.tum").write_text("\n".join(lines) + "\n")
     # line 1 is the comment, so stamp 7 is on line 9
     one_error(liris(["gt", seq, "--poses", "t.tum"], tmp_path), "t.tum:9", "increase")
+
+
+# ---- metrics.json ranges on read, empty runs -----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def run_dir(seq, tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("run")
+    res = liris(["eval", seq, "-q", "-d", "m2dp", "--protocol", "2", "--out", root / "R"], root)
+    assert res.returncode == 0, res.stderr
+    return root / "R"
+
+
+def edited_run(run_dir: Path, tmp_path: Path, key: str, value) -> Path:
+    import json
+    import shutil
+
+    run = Path(shutil.copytree(run_dir, tmp_path / "B"))
+    data = json.loads((run / "metrics.json").read_text())
+    data["results"][0][key] = value
+    (run / "metrics.json").write_text(json.dumps(data))
+    return run
+
+
+@pytest.mark.parametrize("key, value, fragment", [
+    ("ap", 2.0, "outside [0, 1]"), ("f1_max", 1.5, "outside [0, 1]"),
+    ("n_positives", -3, "negative"),
+])
+@pytest.mark.parametrize("command", ["show", "compare", "plot", "report"])
+def test_out_of_range_metrics_are_named_on_read(run_dir, tmp_path, key, value, fragment,
+                                                command):
+    if command != "show" and key != "ap":
+        pytest.skip("one key is enough for the other readers: they share load_run")
+    run = edited_run(run_dir, tmp_path, key, value)
+    argv = {"show": ["show", run], "compare": ["compare", run_dir, run],
+            "plot": ["plot", run, "--out", tmp_path / "figs"],
+            "report": ["report", run, "--out", tmp_path / "rep"]}[command]
+    one_error(liris(argv, tmp_path), "metrics.json", f"results[0].{key}", fragment)
+
+
+def test_show_of_an_empty_run_says_so(run_dir, tmp_path):
+    import json
+    import shutil
+
+    run = Path(shutil.copytree(run_dir, tmp_path / "E"))
+    data = json.loads((run / "metrics.json").read_text())
+    data["results"] = []
+    (run / "metrics.json").write_text(json.dumps(data))
+    one_error(liris(["show", run], tmp_path), "metrics.json", "no results")
