@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from synthetic_loop import loop_sequence
 
@@ -235,3 +236,23 @@ def test_show_of_an_empty_run_says_so(run_dir, tmp_path):
     data["results"] = []
     (run / "metrics.json").write_text(json.dumps(data))
     one_error(liris(["show", run], tmp_path), "metrics.json", "no results")
+
+
+# ---- --export-loops when F1max is 0 ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("f1", [0.0, None])
+def test_export_loops_with_f1max_zero_writes_none_and_warns(seq, tmp_path, f1):
+    from lidar_iris_eval.errors import LirisWarning
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate, export_loops
+    from lidar_iris_eval.io import open_sequence
+
+    run = evaluate(open_sequence(seq), ["m2dp"], protocols=(1,), settings=Settings(exclude=5))
+    p1 = run.results[0].protocol1
+    # a threshold that accepts every match, as the first curve point does when F1max is 0
+    p1.metrics["f1_threshold"] = float(np.nanmax(p1.matches.distance)) + 1.0
+    assert (p1.matches.match >= 0).sum() > 0  # there are edges the export could write
+    p1.metrics["f1_max"] = f1
+    with pytest.warns(LirisWarning, match="F1max"):
+        out = export_loops(run, tmp_path / "l.txt")
+    assert [count for _, count in out.values()] == [0]
