@@ -256,3 +256,23 @@ def test_export_loops_with_f1max_zero_writes_none_and_warns(seq, tmp_path, f1):
     with pytest.warns(LirisWarning, match="F1max"):
         out = export_loops(run, tmp_path / "l.txt")
     assert [count for _, count in out.values()] == [0]
+
+
+# ---- option contradictions and ranges --------------------------------------------------------
+
+
+def test_seeds_beyond_32_bits_are_refused(seq, tmp_path):
+    big = 2**64  # 18446744073709551616
+    one_error(liris(["eval", seq, "-q", "-d", "m2dp", "--protocol", "1", "--seeds", f"1,{big}"],
+                    tmp_path), "--seeds", str(big), "out of range")
+
+
+def test_seed_at_the_32_bit_limit_is_accepted():
+    from lidar_iris_eval.evaluation.seeds import parse_seeds
+
+    assert parse_seeds(f"0,{2**32 - 1}") == (0, 2**32 - 1)
+
+
+def test_bench_protocol_and_its_skip_are_contradictory(tmp_path):
+    one_error(liris(["bench", "--protocol", "1", "--skip-protocol1"], tmp_path),
+              "--skip-protocol1", "contradictory")
