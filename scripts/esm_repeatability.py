@@ -210,7 +210,7 @@ def main(argv=None) -> int:
         "knn": esm.params.knn,
         "segments_per_map_median": float(np.median(counts)) if len(counts) else 0.0,
         "segment_voxels_pct": dict(zip(("p10", "p50", "p90"),
-                                       np.percentile(sizes, [10, 50, 90]).tolist()))
+                                       np.percentile(sizes, [10, 50, 90]).tolist(), strict=True))
         if len(sizes) else {},
         "neighbours": {"gap": gap, "repeated": nrep, "counted": ncnt,
                        "repeatability": nrep / ncnt if ncnt else float("nan")},
