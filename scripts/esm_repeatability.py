@@ -117,6 +117,11 @@ def revisit_report(esm, db, poses, exclude: int, radius: float, match: float, kn
                 r = 1 + (d2 < true[:, None]).sum(axis=1)
                 row["ranks"] = [int(x) for x in r]
                 ranks.extend(row["ranks"])
+        loc = esm.localisation(db, int(i), int(i) - exclude + 1)
+        row["inliers"] = int(loc.inliers)  # the best consistent set when rejected
+        row["frame"] = int(loc.frame)
+        if loc.frame >= 0:
+            row["match_dist_m"] = float(np.linalg.norm(poses[loc.frame, :3, 3] - poses[i, :3, 3]))
         rows.append(row)
     seg = sum(r["segments"] for r in rows)
     rep = sum(r["repeated"] for r in rows)
@@ -132,6 +137,13 @@ def revisit_report(esm, db, poses, exclude: int, radius: float, match: float, kn
         f"within_knn{knn}": int((ranks <= knn).sum()) if len(ranks) else 0,
         "queries_with_6_within_knn": int(sum(
             sum(1 for x in r["ranks"] if x <= knn) >= 6 for r in rows)),
+        "localised": sum(r["frame"] >= 0 for r in rows),
+        "localised_within_radius": sum(r["frame"] >= 0 and r["match_dist_m"] < radius
+                                       for r in rows),
+        "rejected_by_offset": sum(r["frame"] < 0 and r["inliers"] >= esm.params.min_consistent
+                                  for r in rows),
+        "best_set_median": float(np.median([r["inliers"] for r in rows])) if rows
+        else float("nan"),
         "per_query": rows,
     }
 
@@ -229,6 +241,9 @@ def main(argv=None) -> int:
           f"{rv['rank_median']} (target median {rv['target_segments_median']:.0f} segments), "
           f"{rv['within_knn' + str(report['knn'])]} within k={report['knn']}; queries with >= 6 "
           f"within k: {rv['queries_with_6_within_knn']}")
+    print(f"  localise: {rv['localised']} localised ({rv['localised_within_radius']} within "
+          f"{args.radius} m), {rv['rejected_by_offset']} rejected by the frame rule only; "
+          f"best consistent set median {rv['best_set_median']}")
     if args.figure:
         figure({**report, "_sizes": sizes.tolist()}, Path(args.figure))
     if args.json:
