@@ -119,8 +119,6 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
 
     for p, skip in ((1, skip_protocol1), (2, skip_protocol2)):
         if skip and str(p) in protocol_list:
-            from lidar_iris_eval.errors import LirisError
-
             raise LirisError(f"--protocol {p} --skip-protocol{p}",
                              "contradictory: ask for the protocol or skip it, not both")
     protocols = tuple(p for p, skip in ((1, skip_protocol1), (2, skip_protocol2))
