@@ -35,6 +35,9 @@ def die_with_parent(parent_pid: int, poll_seconds: float = POLL_SECONDS) -> None
     worker then watches both.
     """
     direct = os.getppid()
+    # Ctrl-C reaches the whole process group: the parent reports it once and
+    # shuts the pool down; a worker's own KeyboardInterrupt traceback is noise.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         try:
             libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)

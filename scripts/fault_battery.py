@@ -518,6 +518,46 @@ def cases() -> list[Case]:
                                          "--export-loops", "l.xyz"], seq, "error",
              "--export-loops"))
 
+    # issue 40: finite and orthonormal trajectories, stamp order, ranges on read, seeds
+    def traj(bad: str) -> Callable[[Path], None]:
+        lines = [f"1 0 0 {2.0 * i} 0 1 0 0 0 0 1 0" for i in range(8)]
+        lines[5] = bad
+        return write("t.txt", "\n".join(lines) + "\n")
+
+    add(Case("simulate trajectory NaN row", ["simulate", "-q", "X", "--trajectory", "t.txt"],
+             traj(" ".join(["nan"] * 12)), "error", "t.txt:6"))
+    add(Case("simulate trajectory scaled rotation",
+             ["simulate", "-q", "X", "--trajectory", "t.txt"],
+             traj("2 0 0 10 0 2 0 0 0 0 2 0"), "error", "t.txt:6"))
+
+    def tum(stamps: list[float]) -> Callable[[Path], None]:
+        def setup(cwd: Path) -> None:
+            copy_seq()(cwd)
+            n = len((cwd / "S/poses.txt").read_text().splitlines())
+            times = [0.1 * i for i in range(n)]
+            times[10:10 + len(stamps)] = stamps
+            (cwd / "t.tum").write_text("".join(f"{t:.6f} {i} 0 0 0 0 0 1\n"
+                                               for i, t in enumerate(times)))
+        return setup
+
+    add(Case("tum duplicate stamp", ["gt", "S", "--poses", "t.tum"], tum([0.9]), "error",
+             "t.tum:11"))
+    add(Case("tum unsorted stamps", ["gt", "S", "--poses", "t.tum"], tum([0.5]), "error",
+             "t.tum:11"))
+    for key, value in (("ap", 2.0), ("f1_max", 1.5), ("n_positives", -3)):
+        for cmd in ("compare", "plot", "show", "report"):
+            argv = {"compare": ["compare", "A", "B"], "plot": ["plot", "B", "--out", "figs"],
+                    "show": ["show", "B"], "report": ["report", "B", "--out", "rep"]}[cmd]
+            add(Case(f"{cmd} metrics {key}={value} out of range", argv,
+                     bad_metrics(set_row(key, value)), "error", key))
+    add(Case("show empty results", ["show", "B"],
+             bad_metrics(lambda d: d.__setitem__("results", [])), "error", "no results"))
+    add(Case("seeds beyond 64 bits", ["eval", "S", *quick, "-d", "m2dp", "--protocol", "1",
+                                      "--seeds", "18446744073709551616"], seq, "error",
+             "--seeds"))
+    add(Case("bench protocol and its skip", ["bench", "--protocol", "1", "--skip-protocol1"],
+             None, "error", "--skip-protocol1"))
+
     # help for a new user
     def lists_all(res: Result) -> str | None:
         names = ("LiDAR Iris", "Scan Context", "M2DP", "ESF", "GOSMatch", "ESM")

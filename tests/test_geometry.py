@@ -73,6 +73,37 @@ def test_pose_errors_hand_computed():
     assert g.rotation_error_deg(g.yaw_pose(40.0), gt) == pytest.approx(5.0)
 
 
+def printed(T: np.ndarray) -> np.ndarray:
+    """``T`` as KITTI prints it: every entry to 7 significant digits (``%e``)."""
+    return np.vectorize(lambda v: float(f"{v:.6e}"))(T)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_rotation_error_of_printed_rotations_keeps_small_angles(seed):
+    # Issue 40: the trace of two rotations printed to 7 digits can exceed 3 and
+    # was clipped, so a pose 0.022 deg off read 0.0. The expected angle comes
+    # from scipy's rotation vector of the exact relative rotation.
+    rng = np.random.default_rng(seed)
+    gt = random_pose(rng)
+    axis = rng.normal(size=3)
+    delta = Rotation.from_rotvec(np.deg2rad(0.022) * axis / np.linalg.norm(axis))
+    est = gt.copy()
+    est[:3, :3] = gt[:3, :3] @ delta.as_matrix()
+    exact = np.rad2deg(np.linalg.norm(delta.as_rotvec()))
+    got = g.rotation_error_deg(printed(est), printed(gt))
+    assert got == pytest.approx(exact, abs=1e-3)
+
+
+def test_rotation_error_of_stacks_with_nan_and_near_half_turns():
+    near = g.yaw_pose(179.99)
+    est = np.stack([g.yaw_pose(10.0), np.full((4, 4), np.nan), near])
+    gt = np.stack([g.yaw_pose(10.0005), g.yaw_pose(0.0), g.yaw_pose(0.0)])
+    got = g.rotation_error_deg(est, gt)
+    assert got[0] == pytest.approx(0.0005, abs=1e-6)
+    assert np.isnan(got[1])
+    assert got[2] == pytest.approx(179.99, abs=1e-6)
+
+
 def test_invert_pose_and_quaternion():
     rng = np.random.default_rng(1)
     for _ in range(20):

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import sys
+import threading
 import warnings
 
 # Our kernels are numba-threaded or sized for one BLAS thread. OpenBLAS's own
@@ -21,14 +23,36 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import click
 
 from lidar_iris_eval import __version__
+from lidar_iris_eval.cli.terminal import end_line, fresh_line, tracked_stderr
 from lidar_iris_eval.errors import LirisError, LirisWarning, os_error, register_flags
 
 EXIT_BAD_INPUT = 2
+#: exit code of a run stopped by Ctrl-C (128 + SIGINT), as shells report it
+EXIT_INTERRUPTED = 130
+
+
+def _interrupted_during_startup(signum, frame):  # pragma: no cover - timing dependent
+    """Ctrl-C while the commands are being imported: nothing is written yet, so stop here."""
+    sys.stderr.write("\nliris: interrupted\n")
+    sys.stderr.flush()
+    os._exit(EXIT_INTERRUPTED)
+
+
+def _on_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+# Start-up (importing NumPy, numba and every command) takes a second or two; a
+# Ctrl-C then printed a KeyboardInterrupt traceback. The handler is put back at
+# the end of this module, so importing the package as a library changes nothing.
+_STARTUP_SIGINT = (signal.signal(signal.SIGINT, _interrupted_during_startup)
+                   if _on_main_thread() else None)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     """Print liris warnings as one plain line instead of Python's source dump."""
     if issubclass(category, LirisWarning):
+        end_line()  # a bar keeps running; its next frame starts below the warning
         print(f"liris: warning: {message}", file=sys.stderr)
     else:
         _default_showwarning(message, category, filename, lineno, file, line)
@@ -138,6 +162,46 @@ def _clamped_workers() -> None:
 _register_reader_flags()
 _finite_floats()
 _clamped_workers()
+if _STARTUP_SIGINT is not None:
+    signal.signal(signal.SIGINT, _STARTUP_SIGINT)
+
+
+class _Interrupts:
+    """SIGINT as a ``KeyboardInterrupt`` that is remembered once raised.
+
+    Code interrupted inside a compiled kernel may turn the interrupt into
+    another exception (numba reports a ``SystemError``); the flag lets
+    :func:`main` still report it as an interrupt.
+    """
+
+    def __init__(self):
+        self.seen = False
+        self._previous = None
+
+    def _handler(self, signum, frame):
+        self.seen = True
+        raise KeyboardInterrupt
+
+    def __enter__(self):
+        if _on_main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+        return False
+
+
+def _caused_by_interrupt(err: BaseException) -> bool:
+    """True when ``err`` is, or was raised while handling, a ``KeyboardInterrupt``."""
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -147,30 +211,50 @@ def main(argv: list[str] | None = None) -> None:
     folded into one line and exit code 2, like every other bad input. So are
     operating-system errors (a read-only or full disk, a path under a file):
     they name the path through :func:`lidar_iris_eval.errors.os_error`, and
-    every writer is atomic, so nothing half-written is left behind.
+    every writer is atomic, so nothing half-written is left behind. Ctrl-C
+    prints ``liris: interrupted`` and exits 130, whatever was running. Every
+    such line starts on a line of its own, after any progress bar.
     """
-    try:
-        cli.main(args=argv, prog_name="liris", standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("liris: aborted", err=True)
-        sys.exit(130)
-    except click.ClickException as err:
-        click.echo(f"liris: error: {err.format_message()}", err=True)
-        sys.exit(EXIT_BAD_INPUT)
-    except LirisError as err:
+    with tracked_stderr(), _Interrupts() as interrupts:
+        try:
+            cli.main(args=argv, prog_name="liris", standalone_mode=False)
+        except SystemExit:
+            if interrupts.seen:
+                _stop("liris: interrupted", EXIT_INTERRUPTED)
+            raise
+        except BaseException as err:  # noqa: BLE001 - every ending is worded below
+            if interrupts.seen or _caused_by_interrupt(err):
+                _stop("liris: interrupted", EXIT_INTERRUPTED)
+            _handle(err)
+
+
+def _handle(err: BaseException) -> None:
+    """Word an exception that ended a command (re-raise one that is not the user's)."""
+    if isinstance(err, click.exceptions.Abort):
+        _stop("liris: aborted", EXIT_INTERRUPTED)
+    if isinstance(err, click.ClickException):
+        _stop(f"liris: error: {err.format_message()}", EXIT_BAD_INPUT)
+    if isinstance(err, LirisError):
         _fail(err)
-    except BrokenPipeError:
+    if isinstance(err, BrokenPipeError):
         # stdout closed early (``liris ... | head``): not an error of the user's input.
         sys.stderr.close()
         sys.exit(141)
-    except OSError as err:
+    if isinstance(err, OSError):
         _fail(os_error(err))
-    except UnicodeDecodeError as err:
+    if isinstance(err, UnicodeDecodeError):
         _fail(LirisError(None, f"a file is not UTF-8 text ({err.reason} at byte {err.start})"))
+    raise err
+
+
+def _stop(line: str, code: int) -> None:
+    """``line`` on a line of its own on stderr (after closing progress bars), then exit."""
+    fresh_line()
+    click.echo(line, err=True)
+    sys.exit(code)
 
 
 def _fail(err: LirisError) -> None:
     """One line on stderr, exit code 2."""
     text = " ".join(str(err).split())  # one line, even if a message carries a newline
-    click.echo(f"liris: error: {text}", err=True)
-    sys.exit(EXIT_BAD_INPUT)
+    _stop(f"liris: error: {text}", EXIT_BAD_INPUT)

@@ -117,6 +117,10 @@ def command(frames, descriptor_text, preset, sim_preset, azimuth_steps, sequence
     from lidar_iris_eval.cache import default_cache_dir
     from lidar_iris_eval.io import open_sequence
 
+    for p, skip in ((1, skip_protocol1), (2, skip_protocol2)):
+        if skip and str(p) in protocol_list:
+            raise LirisError(f"--protocol {p} --skip-protocol{p}",
+                             "contradictory: ask for the protocol or skip it, not both")
     protocols = tuple(p for p, skip in ((1, skip_protocol1), (2, skip_protocol2))
                       if not skip and (not protocol_list or str(p) in protocol_list))
     settings = BenchSettings(exclude=exclude, radius=radius, protocols=protocols,

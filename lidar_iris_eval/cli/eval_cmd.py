@@ -68,6 +68,16 @@ register_flags({
               help="Score a list of pairs instead of protocols 1/2: a file of 'i j label' "
                    "lines, or 'ssc' / 'ssc:N' for SSC's rule (< 3 m and more than 50 frames "
                    "apart; N negatives > 20 m per positive, default 10, seed 0).")
+@click.option("--loops", "loop_paths", multiple=True,
+              type=click.Path(path_type=Path, dir_okay=False),
+              help="Score this file's loops (g2o, matches.csv, pair list; docs/loops.md) "
+                   "instead of a descriptor; may be repeated.")
+@click.option("--loops-format", type=click.Choice(["g2o", "matches", "liris-txt", "pairs"]),
+              default=None, help="Format of every --loops file [default: detected].")
+@click.option("--loops-index-base", type=click.IntRange(0, 1), default=0, show_default=True,
+              help="Pair lists: 0- or 1-based frame indices.")
+@click.option("--loops-gap", type=click.IntRange(min=1), default=1, show_default=True,
+              help="g2o: an edge is a loop when its vertex ids differ by more than this.")
 @click.option("--ranking", is_flag=True,
               help="Also rank each query's database (Recall@1..25, Recall@1 %, MRR) in a "
                    "within-sequence run: one more matching pass for protocol 1.")
@@ -98,7 +108,8 @@ register_flags({
 @click.option("--scheduler", default="processes", show_default=True,
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
-def command(sequence, protocols, query_path, database_path, align_path, pairs_text, ranking,
+def command(sequence, protocols, query_path, database_path, align_path, pairs_text, loop_paths,
+            loops_format, loops_index_base, loops_gap, ranking,
             descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
@@ -142,6 +153,14 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
                        as_json, reader_options, scheduler, odometry)
         return
     sequence = sequence[0]
+    if loop_paths:
+        from lidar_iris_eval.cli.loops_eval import evaluate_loops_cli
+
+        evaluate_loops_cli(open_input(sequence, reader_options), loop_paths, loops_format,
+                           loops_index_base, loops_gap, settings, protocols, descriptor_text,
+                           out, overwrite, as_json,
+                           {**config_extra(conv), "reader_options": reader_options})
+        return
     sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
     descriptors = build_descriptors(descriptor_text, preset, sensor, params, odometry) \
         if descriptor_text else []

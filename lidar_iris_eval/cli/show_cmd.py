@@ -26,6 +26,11 @@ def command(run, fmt, no_conventions):
     from lidar_iris_eval.runs.loop_table import render_loop_table, render_seed_table
 
     loaded = load_run(run)
+    if not loaded.rows:
+        from lidar_iris_eval.errors import LirisError
+
+        raise LirisError(loaded.path / "metrics.json", "the run holds no results (an empty "
+                         "'results' list): nothing to show")
     click.echo(render_table(loaded.rows, fmt))
     prefix = {"markdown": "- ", "latex": "% ", "csv": "# "}.get(fmt, "")
     for line in result_warnings(loaded.rows):  # stored with the numbers they qualify

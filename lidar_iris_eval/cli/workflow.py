@@ -73,6 +73,7 @@ def workflow_options(func):
         # a query/database run names its own sessions and has its own protocol
         sessions = kwargs.get("query_path") is not None or kwargs.get("database_path") is not None
         paired = kwargs.get("pairs_text") is not None  # --pairs: the list is the protocol
+        paired = paired or bool(kwargs.get("loop_paths"))  # --loops: protocol 1 of the file
         if not kwargs.get("sequence") and not planned and not sessions:
             raise LirisError("liris eval", "give a SEQUENCE (or --config RUN/config.yaml)")
         if not kwargs.get("protocols") and not planned and not sessions and not paired:
@@ -91,7 +92,8 @@ def workflow_options(func):
         if meta["externals"] and several:
             raise LirisError("--external", "one descriptor file fits one sequence; evaluate "
                                            "each sequence with its own --external")
-        if not kwargs.get("descriptor_text") and not meta["externals"] and not planned:
+        if (not kwargs.get("descriptor_text") and not meta["externals"] and not planned
+                and not kwargs.get("loop_paths")):
             raise LirisError("--descriptor", "give at least one descriptor (or --external)")
         return func(*args, **kwargs)
 

@@ -471,8 +471,19 @@ def export_loops(evaluation: Evaluation, path: str | os.PathLike,
                          strict=True):
         p1 = r.protocol1
         tau = p1.metrics["f1_threshold"]
+        f1 = p1.metrics.get("f1_max")
         matches = p1.matches
-        accepted = (matches.match >= 0) & (matches.distance <= tau) if np.isfinite(tau) else \
+        usable = f1 is not None and np.isfinite(f1) and f1 > 0 and tau is not None \
+            and np.isfinite(tau)
+        if not usable:
+            # F1max 0 (or undefined): the threshold is then the curve's first point and
+            # every edge it accepts is false; a pose graph must not get them
+            from lidar_iris_eval.errors import warn
+
+            warn(option("export_loops", target), f"{r.descriptor.name}: F1max is "
+                 f"{'undefined' if f1 is None or not np.isfinite(f1) else f'{f1:g}'}, so no "
+                 "threshold separates true loops; no loops written")
+        accepted = (matches.match >= 0) & (matches.distance <= tau) if usable else \
             np.zeros(len(matches.match), bool)
         pose = p1.pose if p1.pose is not None else np.full((len(matches.match), 4, 4), np.nan)
         ratio = rmse = None

@@ -32,6 +32,10 @@ SEED_METRICS = ("ap", "f1_max", "r100p", "ep", "rr", "rte_m_median", "rre_deg_me
                 "refined_rr", "refined_rte_m_median", "refined_rre_deg_median")
 
 
+#: seeds reach NumPy's and numba's generators, which take 32-bit seeds (``RandomState``)
+MAX_SEED = 2**32 - 1
+
+
 def parse_seeds(text: str | Sequence[int]) -> tuple[int, ...]:
     """``"1,2,3"`` -> ``(1, 2, 3)``: distinct non-negative integers, in the given order."""
     try:
@@ -40,6 +44,9 @@ def parse_seeds(text: str | Sequence[int]) -> tuple[int, ...]:
         raise LirisError(option("seeds", text), "expected integers, e.g. 1,2,3") from None
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise LirisError(option("seeds", text), "give distinct non-negative integers")
+    if max(seeds) > MAX_SEED:
+        raise LirisError(option("seeds", text), f"seed {max(seeds)} is out of range: seeds are "
+                                                f"32-bit, 0 to {MAX_SEED}")
     return seeds
 
 

@@ -47,6 +47,16 @@ def check_rotations(poses: np.ndarray, path: Path, line_numbers: list[int] | Non
         raise LirisError(where, f"{what}: {rotation_problem(rotations[first])}")
 
 
+def check_finite(values, where: str, what: str) -> None:
+    """Raise one LirisError at ``where`` (``file:line``) if a value of a pose row is NaN or inf.
+
+    Every pose reader (KITTI, TUM, the dataset tables, Oxford's INS) calls it
+    per row, so a non-finite pose never reaches the SVDs and interpolations.
+    """
+    if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
+        raise LirisError(where, f"malformed {what} line (NaN or inf)")
+
+
 def _read_rows(path: Path, expected: int, what: str) -> np.ndarray:
     """Parse a whitespace table whose rows each hold ``expected`` numbers."""
     return _read_numbered_rows(path, expected, what)[0]
@@ -72,8 +82,7 @@ def _read_numbered_rows(path: Path, expected: int, what: str) -> tuple[np.ndarra
                 f"{path}:{number}",
                 f"malformed {what} line: {len(values)} numbers, expected {expected}",
             )
-        if not np.all(np.isfinite(values)):
-            raise LirisError(f"{path}:{number}", f"malformed {what} line (NaN or inf)")
+        check_finite(values, f"{path}:{number}", what)
         rows.append(values)
         numbers.append(number)
     if not rows:
@@ -114,7 +123,14 @@ def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
 def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM trajectory ``t x y z qx qy qz qw``: ``(times (N,), poses (N, 4, 4))``."""
     path = Path(path)
-    rows = _read_rows(path, 8, "TUM pose")
+    rows, numbers = _read_numbered_rows(path, 8, "TUM pose")
+    steps = np.diff(rows[:, 0])
+    if np.any(steps <= 0):
+        k = int(np.argmax(steps <= 0)) + 1
+        kind = "repeats" if steps[k - 1] == 0 else "is earlier than"
+        raise LirisError(f"{path}:{numbers[k]}",
+                         f"TUM pose stamps must increase: {rows[k, 0]:.9g} {kind} the stamp "
+                         f"{rows[k - 1, 0]:.9g} of line {numbers[k - 1]}")
     quats = rows[:, 4:8]
     norms = np.linalg.norm(quats, axis=1)
     if np.any(norms < 1e-9):

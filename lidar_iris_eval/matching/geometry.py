@@ -78,17 +78,45 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation (in SO(3)) nearest to matrix/matrices ``R`` ``(..., 3, 3)``.
+
+    The SVD projection ``U diag(1, 1, det(U V^T)) V^T``: it removes the scale
+    and shear that printing a rotation to a few digits adds. Only finite
+    matrices are projected; any with a NaN or inf come back as all NaN.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    out = np.full(R.shape, np.nan)
+    ok = np.isfinite(R).all(axis=(-2, -1))
+    if np.any(ok):
+        U, _, Vt = np.linalg.svd(R[ok])
+        d = np.sign(np.linalg.det(U @ Vt))
+        d[d == 0] = 1.0
+        U[..., :, 2] *= d[..., None]
+        out[ok] = U @ Vt
+    return out
+
+
 def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
     """Geodesic angle (degrees, ``[0, 180]``) between the rotations of two poses.
 
+    Both rotations are first projected onto SO(3) (:func:`nearest_rotation`):
+    a rotation printed to 7 digits, as KITTI's poses are, is off by ~1e-7 in
+    each entry, which pushed the trace above 3 and read small errors as 0.0.
+    The angle is then ``atan2(|skew part|, (trace - 1) / 2)`` of
+    ``R_est^T R_gt``, accurate near 0 and near 180 degrees alike, where the
+    arccos of the trace alone loses half of its digits.
+
     Works on single poses or stacks ``(..., 4, 4)``; NaN in ``T_est`` gives NaN.
     """
-    R_est = np.asarray(T_est, dtype=np.float64)[..., :3, :3]
-    R_gt = np.asarray(T_gt, dtype=np.float64)[..., :3, :3]
-    # trace(R_est^T R_gt) without forming the product
-    tr = np.sum(R_est * R_gt, axis=(-2, -1))
-    cos = np.clip((tr - 1.0) / 2.0, -1.0, 1.0)
-    return np.rad2deg(np.arccos(cos))
+    R_est = nearest_rotation(np.asarray(T_est, dtype=np.float64)[..., :3, :3])
+    R_gt = nearest_rotation(np.asarray(T_gt, dtype=np.float64)[..., :3, :3])
+    M = np.swapaxes(R_est, -1, -2) @ R_gt
+    skew = np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0],
+                     M[..., 1, 0] - M[..., 0, 1]], axis=-1)
+    sin = np.linalg.norm(skew, axis=-1) / 2.0
+    cos = (np.trace(M, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.rad2deg(np.arctan2(sin, cos))
 
 
 def translation_error_m(T_est: np.ndarray, T_gt: np.ndarray) -> np.ndarray:

@@ -39,6 +39,28 @@ NUMBER_PREFIXES = ("n_", "top1_", "recall_at_", "rre_", "rte_")
 NUMBER_LIST_KEYS = frozenset({"recall_at_n"})
 
 
+#: number keys that are fractions in [0, 1] (precision, recall, F1 and their kin)
+FRACTION_KEYS = frozenset({"ap", "f1_max", "r100p", "ep", "p_at_lowest_recall"})
+FRACTION_PREFIXES = ("recall_at_", "top1_")
+#: number keys (and prefixes) that are counts, times or errors: never negative
+NONNEGATIVE_KEYS = frozenset({"extract_ms_per_scan", "match_ms_per_query", "match_us_per_pair"})
+NONNEGATIVE_PREFIXES = ("n_", "rre_", "rte_")
+
+
+def range_problem(key: str, value: Any) -> str | None:
+    """Why number ``value`` of result key ``key`` is out of its range, or None."""
+    if value is None:
+        return None
+    if not math.isfinite(value):
+        return f"{value!r} is not a finite number"
+    if key in FRACTION_KEYS or key in NUMBER_LIST_KEYS or key.startswith(FRACTION_PREFIXES):
+        if not 0.0 <= value <= 1.0:
+            return f"{value!r} is outside [0, 1]"
+    elif (key in NONNEGATIVE_KEYS or key.startswith(NONNEGATIVE_PREFIXES)) and value < 0:
+        return f"{value!r} is negative"
+    return None
+
+
 #: what a result row's ``protocol`` may be (cross-session: docs/cross-session.md)
 PROTOCOLS = (1, 2, "cross-session")
 
@@ -74,9 +96,19 @@ def check_metrics(metrics: Any, path: str | Path) -> None:
                 if not isinstance(value, list) or not all(map(_number_or_null, value)):
                     raise LirisError(path, f"{where}.{key}: expected a list of numbers or "
                                            f"nulls, got {value!r}")
-            elif is_number_key(key) and not _number_or_null(value):
-                raise LirisError(path, f"{where}.{key}: expected a number or null, got "
-                                       f"{value!r}")
+                values = value
+            elif is_number_key(key):
+                if not _number_or_null(value):
+                    raise LirisError(path, f"{where}.{key}: expected a number or null, got "
+                                           f"{value!r}")
+                values = [value]
+            else:
+                continue
+            for item in values:
+                problem = range_problem(key, item)
+                if problem is not None:
+                    raise LirisError(path, f"{where}.{key}: {problem} (not written by liris "
+                                           "eval, or edited)")
     for key in ("conventions", "sequence"):
         if key in metrics and not isinstance(metrics[key], dict):
             raise LirisError(path, f"{key}: expected a mapping, got {metrics[key]!r}")

@@ -167,15 +167,17 @@ def poses_on_ground(
 
 
 def read_kitti_poses(path) -> np.ndarray:
-    """(N,4,4) poses from a KITTI pose file (12 numbers per line, row-major 3x4)."""
-    try:
-        data = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as err:
-        raise LirisError(path, f"cannot read poses ({err})") from None
-    if data.shape[1] != 12 or len(data) < 2:
+    """(N,4,4) poses from a KITTI pose file (12 numbers per line, row-major 3x4).
+
+    The readers' own checks apply (:func:`lidar_iris_eval.io.poses.read_kitti_poses`):
+    a NaN/inf row or a rotation that is not one (a scaled ``2 I``) is one error
+    naming ``file:line``.
+    """
+    from lidar_iris_eval.io.poses import read_kitti_poses as read_checked
+
+    poses = read_checked(path)
+    if len(poses) < 2:
         raise LirisError(path, "expected at least 2 lines of 12 numbers (KITTI pose format)")
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :] = data.reshape(-1, 3, 4)
     return poses
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lidar_iris_eval.errors import LirisError, read_text
+from lidar_iris_eval.io.poses import check_finite
 from lidar_iris_eval.io.scans import Scan
 from lidar_iris_eval.io.sequence import Sequence, hash_file_samples
 from lidar_iris_eval.io.timematch import match_poses
@@ -180,10 +181,12 @@ def quat_xyzw(q: np.ndarray, source: str | Path) -> np.ndarray:
 
 
 def read_table(path: Path, columns: int, what: str, delimiter: str | None = None,
-               skip_header: bool = False) -> np.ndarray:
+               skip_header: bool = False, nonfinite_ok: bool = False) -> np.ndarray:
     """A numeric table with ``columns`` values a row (comment lines ``#``/``%`` skipped).
 
-    Rows with a wrong count or non-numbers are one error naming ``path:line``.
+    Rows with a wrong count, non-numbers or (unless ``nonfinite_ok``, for a
+    dataset whose own files hold NaN rows, such as NCLT, filtered by
+    :func:`finite_rows`) NaN/inf are one error naming ``path:line``.
     """
     path = Path(path)
     if not path.is_file():
@@ -204,6 +207,8 @@ def read_table(path: Path, columns: int, what: str, delimiter: str | None = None
         if len(values) != columns:
             raise LirisError(f"{path}:{number}",
                              f"malformed {what} line: {len(values)} values, expected {columns}")
+        if not nonfinite_ok:
+            check_finite(values, f"{path}:{number}", what)
         rows.append(values)
     if not rows:
         raise LirisError(path, f"{what} file has no pose rows")

@@ -96,7 +96,8 @@ def find_ground_truth(session: Path) -> Path:
 
 def read_ground_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """``(seconds (M,), Velodyne-frame poses (M, 4, 4))`` from a ground-truth csv."""
-    table = finite_rows(read_table(path, 7, "NCLT ground truth"), path, "ground-truth")
+    table = finite_rows(read_table(path, 7, "NCLT ground truth", nonfinite_ok=True), path,
+                        "ground-truth")
     body = se3(rpy_zyx(table[:, 4], table[:, 5], table[:, 6]), table[:, 1:4])
     return table[:, 0] * 1e-6, body @ body_to_velodyne()
 

@@ -46,6 +46,7 @@ from lidar_iris_eval.io.datasets.base import (
     se3,
     stem_stamps,
 )
+from lidar_iris_eval.io.poses import check_finite
 from lidar_iris_eval.io.scans import Scan, clean_points
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -158,6 +159,7 @@ def read_ins(path: Path) -> tuple[np.ndarray, np.ndarray]:
             values.append([float(row[c]) for c in cols])
         except (ValueError, IndexError):
             raise LirisError(f"{path}:{number}", "malformed INS row") from None
+        check_finite(values[-1], f"{path}:{number}", "INS")
     if not values:
         raise LirisError(path, "INS file has no rows")
     table = np.asarray(values)

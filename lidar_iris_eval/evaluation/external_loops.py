@@ -1,0 +1,335 @@
+"""Score any system's loops against liris's ground truth (issue 35; docs/loops.md).
+
+::
+
+    from lidar_iris_eval.evaluation.external_loops import evaluate_loops
+    from lidar_iris_eval.runs.writer import write_run
+
+    run = evaluate_loops("sim/seq", ["slam/graph.g2o"], Settings(exclude=50))
+    print(run.rows[0]["loops_precision"], run.rows[0]["revisit_coverage"])
+    write_run(run, "results/slam-loops")      # liris show / compare read it
+
+A file's loops (:mod:`lidar_iris_eval.io.loops`) become one "method" named
+``loops:<file stem>`` in an ordinary protocol 1 run:
+
+* **With a score per loop** (a ``matches.csv``, a scored pair list): each
+  protocol 1 query keeps its best-scored loop (ties: the smaller match), a
+  query without a loop has no match (never accepted), and the table goes
+  through :func:`~lidar_iris_eval.evaluation.protocol1.score_protocol1`, the
+  scorer every method uses: AP, F1max, R@100P, EP and the PR curve under the
+  run's conventions. A run's own ``matches.csv`` therefore gives that run's
+  numbers exactly.
+* **Without a score** (a pose graph, an accepted-loop list): every loop is
+  accepted. The row's protocol 1 numbers are those of a one-point curve (each
+  query's first loop in file order, distance 0), and the ``loops_*`` keys
+  count every loop (several per query allowed):
+  ``loops_tp`` / ``loops_fp`` (ground-truth distance under / not under the
+  radius), ``loops_precision = tp / (tp + fp)``, ``revisit_coverage`` = revisit
+  queries with at least one true loop / revisit queries, ``loops_recall`` =
+  the same count over the recall denominator (``revisits``: all revisit
+  queries; ``accepted``: covered revisit queries + revisit queries with no
+  loop at all), ``loops_f1`` their harmonic mean.
+
+Loops the convention cannot score are kept out of every count and listed in
+``loops.csv`` with their status: a query that is not a protocol 1 query
+(``i < E``), or a match inside the exclusion window (``j > i - E``; the ground
+truth holds no revisit there). Loops that carry a relative pose (g2o edges,
+``T00..T23``) get the rotation / translation error against the ground-truth
+relative pose (``evaluation/poses.py``) and ``loops_rr``: the share of true
+loops with a full pose within 2 m and 5 deg.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.evaluation.evaluate import DescriptorResult, Evaluation, _rows
+from lidar_iris_eval.evaluation.ground_truth import (
+    database_limits,
+    ground_truth_for,
+    pair_distances,
+)
+from lidar_iris_eval.evaluation.poses import pose_errors, relative_ground_truth
+from lidar_iris_eval.evaluation.protocol1 import Protocol1Result, score_protocol1
+from lidar_iris_eval.evaluation.settings import Settings
+from lidar_iris_eval.io.loops import LoopFile, read_loops
+from lidar_iris_eval.matching.blocks import BestMatches
+
+#: registration recall thresholds of the loops' own poses (as for methods)
+RR_TRANSLATION_M = 2.0
+RR_ROTATION_DEG = 5.0
+LOOPS_RULE = ("accepted loops: TP when the ground-truth distance is under the radius; "
+              "loops_precision = TP / (TP + FP) over every scored loop; revisit_coverage = "
+              "revisit queries with a true loop / revisit queries; loops outside the "
+              "protocol 1 queries or inside the exclusion window are listed, not scored")
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    """What a loop source records in ``config.yaml`` (``descriptors[].params``)."""
+
+    path: str
+    format: str
+    sha256: str
+    rule: str
+    index_base: int = 0
+    gap: int = 1
+    scored: bool = False
+
+
+@dataclass(frozen=True)
+class LoopSource:
+    """A loop file in the place of a descriptor (name ``loops:<stem>``, preset ``loops``)."""
+
+    name: str
+    params: LoopParams
+    preset: str = "loops"
+    two_stage: bool = False
+
+    def run_info(self) -> dict[str, Any]:
+        return {"loops_file": self.params.path, "loops_format": self.params.format}
+
+
+@dataclass(frozen=True)
+class NoDescriptors:
+    """The ``db`` of a loop source: nothing was extracted (timing NaN, as externals)."""
+
+    extract_s: np.ndarray
+    read_s: np.ndarray | None = None
+    extract_ms_per_scan: float | None = None
+    warnings: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.extract_s)
+
+
+@dataclass(frozen=True)
+class LoopScore:
+    """Every loop of one file scored: per-loop arrays (file order) and the protocol 1 result."""
+
+    loops: LoopFile
+    query: np.ndarray
+    match: np.ndarray
+    status: np.ndarray  # "true", "false", "not a query", "within window"
+    dist_m: np.ndarray
+    rre_deg: np.ndarray
+    rte_m: np.ndarray
+    protocol1: Protocol1Result
+    metrics: dict = field(default_factory=dict)
+
+    def table(self) -> dict[str, np.ndarray]:
+        """Columns of ``loops/<name>/loops.csv``: one row per loop of the file."""
+        cols = {"line": self.loops.line, "query": self.query, "match": self.match,
+                "score": (self.loops.score if self.loops.score is not None
+                          else np.full(len(self.query), np.nan)),
+                "match_dist_m": self.dist_m, "status": self.status}
+        if self.loops.pose is not None:
+            cols["rre_deg"], cols["rte_m"] = self.rre_deg, self.rte_m
+        return cols
+
+
+def _per_query(query: np.ndarray, match: np.ndarray, score: np.ndarray | None,
+               usable: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Index (into the loops) of each query's loop, -1 for none: the best score (ties: the
+    smaller match; NaN last), or the first in file order without scores."""
+    chosen = np.full(len(queries), -1, dtype=np.int64)
+    where = {int(q): k for k, q in enumerate(queries)}
+    order = np.flatnonzero(usable)
+    if score is not None:
+        key = np.where(np.isnan(score[order]), np.inf, score[order])
+        nan_last = np.isnan(score[order])
+        order = order[np.lexsort((match[order], key, nan_last))]
+    for k in order:
+        slot = where[int(query[k])]
+        if chosen[slot] < 0:
+            chosen[slot] = k
+    return chosen
+
+
+def score_loops(loops: LoopFile, positions: np.ndarray, settings: Settings, *,
+                lidar_poses: np.ndarray | None = None, frame_ids: np.ndarray | None = None,
+                times: np.ndarray | None = None, forward: np.ndarray | None = None
+                ) -> LoopScore:
+    """Score one file's loops under ``settings`` (module docstring for every rule).
+
+    ``positions`` are the sequence's ``(N, 3)`` translations in
+    ``settings.pose_frame``; ``lidar_poses`` ``(N, 4, 4)`` its LiDAR-frame poses
+    (for the loops' pose errors); ``frame_ids`` map the file's ids to scans.
+    """
+    n = len(positions)
+    query, match = loops.indices(frame_ids, n)
+    gt = ground_truth_for(positions, settings, times)
+    limits = database_limits(n, settings, times) if gt.limits is None else gt.limits
+    is_query = limits[query] >= 0
+    has = match >= 0
+    inside = is_query & has & (match > limits[query])
+    usable = is_query & has & ~inside
+    dist_m = np.full(len(query), np.nan)
+    if has.any():
+        dist_m[has] = pair_distances(positions, query[has], match[has], gt.frame, gt.distance)
+    inclusive = settings.inclusive_radius
+    true = usable & ((dist_m <= gt.radius) if inclusive else (dist_m < gt.radius))
+    status = np.where(true, "true", "false").astype(object)
+    status[~has] = "no match"
+    status[inside] = "within window"
+    status[~is_query] = "not a query"
+    for count, what in ((np.count_nonzero(~is_query), "have a query with no database under "
+                         "the convention (i < E)"),
+                        (np.count_nonzero(inside), "join frames inside the exclusion window "
+                         "(j > i - E)")):
+        if count:
+            warn(loops.path, f"{count} of {len(query)} loops {what}: listed in loops.csv, "
+                             "not scored")
+
+    queries = np.flatnonzero(limits >= 0)
+    chosen = _per_query(query, match, loops.score, usable, queries)
+    got = chosen >= 0
+    best_match = np.full(len(queries), -1, dtype=np.int64)
+    best_match[got] = match[chosen[got]]
+    distance = np.full(len(queries), np.inf)
+    distance[got] = loops.score[chosen[got]] if loops.score is not None else 0.0
+    pose = None
+    if loops.pose is not None:
+        pose = np.full((len(queries), 4, 4), np.nan)
+        pose[got] = loops.pose[chosen[got]]
+    best = BestMatches(query=queries, match=best_match, distance=distance,
+                       yaw_deg=np.full(len(queries), np.nan), seconds=0.0, n_evaluations=0,
+                       source=f"loops:{loops.format}", pose=pose)
+    p1 = score_protocol1(best, positions, gt, settings, forward=forward,
+                         lidar_poses=lidar_poses if pose is not None else None)
+
+    rre = np.full(len(query), np.nan)
+    rte = np.full(len(query), np.nan)
+    if loops.pose is not None and lidar_poses is not None and has.any():
+        rre[has], rte[has] = pose_errors(loops.pose[has],
+                                         relative_ground_truth(lidar_poses, query[has],
+                                                               match[has]))
+    metrics = _set_metrics(loops, query, usable, true, gt, settings, rre, rte)
+    return LoopScore(loops, query, match, status.astype(str), dist_m, rre, rte, p1, metrics)
+
+
+def _ratio(a: float, b: float) -> float | None:
+    return float(a / b) if b else None
+
+
+def _set_metrics(loops, query, usable, true, gt, settings, rre, rte) -> dict:
+    tp = int(np.count_nonzero(true))
+    fp = int(np.count_nonzero(usable & ~true))
+    revisit = gt.revisit
+    covered = np.zeros(gt.n_frames, dtype=bool)
+    covered[query[true]] = True
+    covered &= revisit
+    touched = np.zeros(gt.n_frames, dtype=bool)
+    touched[query[usable]] = True
+    n_covered = int(np.count_nonzero(covered))
+    if settings.recall_denominator == "accepted":
+        denominator = n_covered + int(np.count_nonzero(revisit & ~touched))
+    else:
+        denominator = gt.n_revisits
+    precision = _ratio(tp, tp + fp)
+    recall = _ratio(n_covered, denominator)
+    f1 = (2 * precision * recall / (precision + recall)
+          if precision is not None and recall is not None and precision + recall > 0 else
+          (0.0 if precision is not None and recall is not None else None))
+    out = {
+        "n_loops": int(len(query)), "n_loops_scored": int(np.count_nonzero(usable)),
+        "n_loops_unscored": int(len(query) - np.count_nonzero(usable)),
+        "loops_tp": tp, "loops_fp": fp, "loops_precision": precision,
+        "loops_recall": recall, "loops_f1": f1,
+        "revisit_coverage": _ratio(n_covered, gt.n_revisits),
+        "n_revisits_covered": n_covered, "loops_rule": LOOPS_RULE,
+        "loops_scored_by": "score" if loops.score is not None else "accepted set",
+    }
+    if loops.format == "g2o":
+        out["n_odometry_edges"] = loops.n_odometry_edges
+    if loops.pose is not None:
+        full = true & np.isfinite(rte)
+        rot = true & np.isfinite(rre)
+        out["loops_rre_deg_median"] = float(np.median(rre[rot])) if rot.any() else None
+        out["loops_rte_m_median"] = float(np.median(rte[full])) if full.any() else None
+        ok = full & (rte <= RR_TRANSLATION_M) & (rre <= RR_ROTATION_DEG)
+        out["loops_rr"] = _ratio(int(np.count_nonzero(ok)), int(np.count_nonzero(full)))
+        out["loops_rr_rule"] = (f"true loops with a full pose within {RR_TRANSLATION_M:g} m "
+                                f"and {RR_ROTATION_DEG:g} deg of the ground-truth relative pose")
+    return out
+
+
+def source_names(paths: Sequence[str | os.PathLike]) -> list[str]:
+    """``loops:<stem>`` per file, made unique with ``-2``, ``-3``... when stems repeat."""
+    names: list[str] = []
+    for p in paths:
+        base = f"loops:{Path(p).stem}"
+        name, k = base, 2
+        while name in names:
+            name, k = f"{base}-{k}", k + 1
+        names.append(name)
+    return names
+
+
+def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Settings | None = None,
+                   *, formats: Sequence[str | None] | str | None = None, index_base: int = 0,
+                   gap: int = 1, similarity: bool = False) -> Evaluation:
+    """Score each loop file against ``sequence`` (a Sequence or a path) as one protocol 1 run.
+
+    ``formats``: one format for all files, one per file, or None (detected).
+    Returns an :class:`Evaluation` whose results are the files (``loops:<stem>``);
+    :func:`lidar_iris_eval.runs.writer.write_run` writes it, and each result's
+    ``loop_score`` attribute is its :class:`LoopScore` (see :func:`loop_scores`).
+    """
+    settings = Settings() if settings is None else settings
+    if isinstance(sequence, (str, os.PathLike)):
+        from lidar_iris_eval.io import open_sequence
+
+        sequence = open_sequence(sequence)
+    if not paths:
+        raise LirisError("--loops", "give at least one loop file")
+    if formats is None or isinstance(formats, str):
+        formats = [formats] * len(paths)
+    if len(formats) != len(paths):
+        raise LirisError("--loops-format", f"give one format, or one per --loops file "
+                                           f"({len(paths)})")
+    pose_frame = sequence.resolve_pose_frame(settings.pose_frame)
+    if pose_frame != settings.pose_frame:
+        settings = settings.replace(pose_frame=pose_frame)
+    positions = sequence.positions(pose_frame)
+    times = getattr(sequence, "times", None) if settings.exclude_seconds is not None else None
+    started = time.perf_counter()
+    results = []
+    for path, fmt, name in zip(paths, formats, source_names(paths), strict=True):
+        loops = read_loops(path, fmt, index_base=index_base, gap=gap, similarity=similarity)
+        scored = score_loops(loops, positions, settings, lidar_poses=sequence.poses,
+                             frame_ids=getattr(sequence, "frame_ids", None), times=times,
+                             forward=sequence.poses[:, :3, 0])
+        digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+        source = LoopSource(name, LoopParams(str(Path(path).resolve()), loops.format, digest,
+                                             loops.rule, index_base, gap,
+                                             loops.score is not None))
+        db = NoDescriptors(np.full(len(sequence), np.nan))
+        rows = _rows(source, db, scored.protocol1, None, settings)
+        rows[0]["match_ms_per_query"] = None  # computed elsewhere
+        rows[0].update(scored.metrics)
+        results.append(LoopResult(source, db, scored.protocol1, None, rows, loop_score=scored))
+    return Evaluation(sequence, settings, (1,), pose_frame, results,
+                      time.perf_counter() - started)
+
+
+@dataclass(frozen=True)
+class LoopResult(DescriptorResult):
+    """A :class:`DescriptorResult` that also holds the file's :class:`LoopScore`."""
+
+    loop_score: LoopScore | None = None
+
+
+def loop_scores(evaluation: Evaluation) -> dict[str, LoopScore]:
+    """``{name: LoopScore}`` of the loop sources of an evaluation."""
+    return {r.descriptor.name: r.loop_score for r in evaluation.results
+            if getattr(r, "loop_score", None) is not None}

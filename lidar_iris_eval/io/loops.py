@@ -1,0 +1,337 @@
+"""Readers of other systems' loop closures (issue 35): one :class:`LoopFile` per file.
+
+Formats (``--loops-format``; detected where the file says which it is):
+
+* ``g2o`` -- a pose graph: ``VERTEX_SE3:QUAT id x y z qx qy qz qw`` and
+  ``EDGE_SE3:QUAT a b x y z qx qy qz qw [21 information entries]`` (``FIX`` lines
+  are skipped). Loop edges are those with ``|a - b| > gap`` (vertex ids;
+  ``gap`` 1 by default, so odometry edges between consecutive vertices drop
+  out). Each edge's measurement is the pose of ``b`` in ``a``'s frame; a loop
+  is stored with the later frame as its query and the pose of the earlier one
+  in the query's frame (inverted when ``a < b``). Detected from the ``.g2o``
+  suffix or a first record starting with ``VERTEX_`` / ``EDGE_``.
+* ``matches`` -- a liris run's ``protocol1/<d>/matches.csv`` (a header with
+  ``query``, ``match`` and ``distance``; ``T00..T23`` when present give the
+  pose). One row per query; ``match -1`` is a query without a match. Detected
+  from that header.
+* ``liris-txt`` -- liris's ``--export-loops FILE.txt``: ``i j x y z qx qy qz qw``
+  (frame ids, the pose of ``j`` in ``i``'s frame; ``nan`` translation for
+  yaw-only loops). Detected from exactly 9 numeric columns on every line.
+* ``pairs`` -- ``query match [score]`` per line, whitespace or comma separated,
+  optionally ``query match score x y z qx qy qz qw`` (10 columns); a 4th column
+  without a pose (the LiDAR Iris authors' demo writes ``query match distance
+  flag``) is ignored. Indices are 0-based unless ``index_base=1``. A first line
+  whose first field is not a number is a header; ``#`` starts a comment.
+
+Ids are the frames' ids: the scans' frame ids when the sequence has them (what
+liris's own exports write), otherwise their indices. Every problem is one
+:class:`~lidar_iris_eval.errors.LirisError` naming the file and line.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lidar_iris_eval.errors import LirisError, read_text
+from lidar_iris_eval.io.poses import quaternion_to_matrix
+
+LOOP_FORMATS = ("g2o", "matches", "liris-txt", "pairs")
+#: the columns a matches.csv must have
+MATCHES_COLUMNS = ("query", "match", "distance")
+_T_NAMES = [f"T{r}{c}" for r in range(3) for c in range(4)]
+_SPLIT = re.compile(r"[,\s;]+")
+
+
+@dataclass(frozen=True)
+class LoopFile:
+    """The loops one file claims, in file order.
+
+    ``query``/``match`` are frame ids (not yet scan indices; see
+    :meth:`indices`); ``score`` is lower-is-better (a distance) or None when
+    the file has none; ``pose`` ``(K, 4, 4)`` is the match's pose in the
+    query's frame (NaN where unknown) or None; ``line`` is each loop's line
+    number in the file.
+    """
+
+    path: Path
+    format: str
+    query: np.ndarray
+    match: np.ndarray
+    score: np.ndarray | None
+    pose: np.ndarray | None
+    line: np.ndarray
+    #: g2o: edges dropped as odometry (|a - b| <= gap)
+    n_odometry_edges: int = 0
+    #: the rule that picked the loops, for the record
+    rule: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.query)
+
+    def indices(self, frame_ids: np.ndarray | None, n_frames: int) -> tuple[np.ndarray,
+                                                                            np.ndarray]:
+        """``(query, match)`` as scan indices; an id that is no scan is an error naming
+        its line (``match -1``, a query without a match, stays -1)."""
+        if frame_ids is None or np.array_equal(frame_ids, np.arange(n_frames)):
+            lookup = None
+        else:
+            lookup = {int(v): k for k, v in enumerate(np.asarray(frame_ids))}
+        out = []
+        for values, allow_missing in ((self.query, False), (self.match, True)):
+            idx = np.empty(len(values), dtype=np.int64)
+            for k, v in enumerate(values):
+                v = int(v)
+                if allow_missing and v == -1:
+                    idx[k] = -1
+                    continue
+                hit = (v if 0 <= v < n_frames else None) if lookup is None else lookup.get(v)
+                if hit is None:
+                    what = "frame" if lookup is None else "frame id"
+                    raise LirisError(f"{self.path}:{self.line[k]}",
+                                     f"{what} {v} is not in the sequence ({n_frames} scans"
+                                     + (", ids from the scan file names" if lookup else
+                                        f", indices 0..{n_frames - 1}") + ")")
+                idx[k] = hit
+            out.append(idx)
+        return out[0], out[1]
+
+
+def _pose(values: list[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = values[:3]
+    q = np.asarray(values[3:7], dtype=np.float64)
+    norm = np.linalg.norm(q)
+    if not np.isfinite(norm) or norm == 0:
+        T[:3, :3] = np.nan
+    else:
+        T[:3, :3] = quaternion_to_matrix(q[None] / norm)[0]
+    return T
+
+
+def _invert(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    R = T[:3, :3]
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def _numbers(fields: list[str], where: str, what: str) -> list[float]:
+    try:
+        return [float(v) for v in fields]
+    except ValueError:
+        raise LirisError(where, f"{what}: expected numbers, got {' '.join(fields)!r}") from None
+
+
+def _integer(text: str, where: str, what: str) -> int:
+    try:
+        value = float(text)
+    except ValueError:
+        raise LirisError(where, f"{what}: expected an integer, got {text!r}") from None
+    if not math.isfinite(value) or value != int(value):
+        raise LirisError(where, f"{what}: expected an integer, got {text!r}")
+    return int(value)
+
+
+def _records(text: str):
+    """(line number, fields) of every non-empty, non-comment line."""
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if line:
+            yield number, [f for f in _SPLIT.split(line) if f]
+
+
+def detect_format(path: Path, text: str) -> str:
+    """The format a file's name and content say, or an error asking for ``--loops-format``."""
+    if path.suffix.lower() == ".g2o":
+        return "g2o"
+    records = list(_records(text))
+    if not records:
+        raise LirisError(path, "no loops in the file")
+    first = records[0][1]
+    if first[0].upper().startswith(("VERTEX_", "EDGE_")):
+        return "g2o"
+    header = [f.strip().lower() for f in first]
+    if all(c in header for c in MATCHES_COLUMNS):
+        return "matches"
+    body = records[1:] if not _is_number(first[0]) else records
+    if body and all(len(f) == 9 for _, f in body):
+        return "liris-txt"
+    return "pairs"
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def read_loops(path: str | Path, fmt: str | None = None, *, index_base: int = 0,
+               gap: int = 1, similarity: bool = False) -> LoopFile:
+    """Read a loop file (format ``fmt`` or detected; module docstring).
+
+    ``index_base`` (0 or 1) applies to ``pairs`` files; ``gap`` is the g2o rule
+    (an edge is a loop when its vertex ids differ by more than ``gap``);
+    ``similarity`` says a ``pairs`` score is higher-is-better (it is negated,
+    so every score is a distance).
+    """
+    path = Path(path)
+    if fmt is not None and fmt not in LOOP_FORMATS:
+        raise LirisError(f"--loops-format {fmt}", f"choose from {', '.join(LOOP_FORMATS)}")
+    if index_base not in (0, 1):
+        raise LirisError(f"--loops-index-base {index_base}", "must be 0 or 1")
+    if gap < 1:
+        raise LirisError(f"--loops-gap {gap}", "must be at least 1")
+    text = read_text(path, "loop file")
+    fmt = detect_format(path, text) if fmt is None else fmt
+    if fmt == "g2o":
+        return _read_g2o(path, text, gap)
+    if fmt == "matches":
+        return _read_matches(path, text)
+    return _read_columns(path, text, fmt, index_base if fmt == "pairs" else 0, similarity)
+
+
+def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
+    vertices: dict[int, int] = {}
+    edges = []
+    for number, fields in _records(text):
+        where = f"{path}:{number}"
+        tag, rest = fields[0].upper(), fields[1:]
+        if tag == "VERTEX_SE3:QUAT":
+            if len(rest) != 8:
+                raise LirisError(where, f"VERTEX_SE3:QUAT needs 8 fields, got {len(rest)}")
+            vid = _integer(rest[0], where, "vertex id")
+            if vid in vertices:
+                raise LirisError(where, f"vertex {vid} given twice (first on line "
+                                        f"{vertices[vid]})")
+            _numbers(rest[1:], where, "vertex pose")
+            vertices[vid] = number
+        elif tag == "EDGE_SE3:QUAT":
+            if len(rest) not in (9, 30):
+                raise LirisError(where, f"EDGE_SE3:QUAT needs 9 or 30 fields (ids, pose, "
+                                        f"information), got {len(rest)}")
+            a = _integer(rest[0], where, "edge vertex id")
+            b = _integer(rest[1], where, "edge vertex id")
+            values = _numbers(rest[2:], where, "edge")
+            if a == b:
+                raise LirisError(where, f"edge {a}-{b} joins a vertex to itself")
+            edges.append((number, a, b, _pose(values[:7])))
+        elif tag == "FIX":
+            continue
+        else:
+            raise LirisError(where, f"unknown record {fields[0]} (liris reads VERTEX_SE3:QUAT, "
+                                    "EDGE_SE3:QUAT and FIX)")
+    query, match, pose, lines = [], [], [], []
+    n_odometry = 0
+    for number, a, b, T in edges:
+        for vid in (a, b):
+            if vertices and vid not in vertices:
+                raise LirisError(f"{path}:{number}", f"edge {a}-{b} names vertex {vid}, "
+                                                     "which the file does not define")
+        if abs(a - b) <= gap:
+            n_odometry += 1
+            continue
+        if a > b:  # T: pose of b (the earlier frame) in a's (the query's) frame
+            query.append(a), match.append(b), pose.append(T)
+        else:
+            query.append(b), match.append(a), pose.append(_invert(T))
+        lines.append(number)
+    if not edges:
+        raise LirisError(path, "no EDGE_SE3:QUAT records: not a pose graph with loops")
+    return LoopFile(path, "g2o", np.array(query, dtype=np.int64),
+                    np.array(match, dtype=np.int64), None,
+                    np.array(pose).reshape(-1, 4, 4), np.array(lines, dtype=np.int64),
+                    n_odometry_edges=n_odometry,
+                    rule=f"g2o EDGE_SE3:QUAT with |a - b| > {gap} (vertex ids); the later "
+                         "vertex is the query")
+
+
+def _read_matches(path: Path, text: str) -> LoopFile:
+    records = list(_records(text))
+    header = [f.strip().lower() for f in records[0][1]]
+    missing = [c for c in MATCHES_COLUMNS if c not in header]
+    if missing:
+        raise LirisError(f"{path}:{records[0][0]}", f"a matches.csv header needs the columns "
+                                                    f"{', '.join(missing)}")
+    col = {name: header.index(name) for name in header}
+    has_pose = all(n.lower() in col for n in _T_NAMES)
+    query, match, score, pose, lines = [], [], [], [], []
+    text_rows = [(n, [c.strip() for c in raw.split(",")])
+                 for n, raw in enumerate(text.splitlines(), start=1)][records[0][0]:]
+    for number, cells in text_rows:
+        if not any(cells):
+            continue
+        where = f"{path}:{number}"
+        if len(cells) != len(header):
+            raise LirisError(where, f"expected {len(header)} columns (the header's), got "
+                                    f"{len(cells)}")
+        query.append(_integer(cells[col["query"]], where, "query"))
+        match.append(_integer(cells[col["match"]], where, "match"))
+        value = cells[col["distance"]]
+        score.append(_numbers([value or "nan"], where, "distance")[0])
+        if has_pose:
+            values = _numbers([cells[col[n.lower()]] or "nan" for n in _T_NAMES], where,
+                              "T00..T23")
+            T = np.eye(4)
+            T[:3, :4] = np.reshape(values, (3, 4))
+            pose.append(T)
+        lines.append(number)
+    if not query:
+        raise LirisError(path, "no rows after the header")
+    return LoopFile(path, "matches", np.array(query, dtype=np.int64),
+                    np.array(match, dtype=np.int64), np.array(score, dtype=np.float64),
+                    np.array(pose).reshape(-1, 4, 4) if has_pose else None,
+                    np.array(lines, dtype=np.int64),
+                    rule="liris matches.csv: one best match per query, score = distance")
+
+
+def _read_columns(path: Path, text: str, fmt: str, base: int, similarity: bool) -> LoopFile:
+    records = list(_records(text))
+    if records and not _is_number(records[0][1][0]):
+        records = records[1:]  # a header
+    if not records:
+        raise LirisError(path, "no loops in the file")
+    allowed = (9,) if fmt == "liris-txt" else (2, 3, 4, 10)
+    query, match, score, pose, lines = [], [], [], [], []
+    for number, fields in records:
+        where = f"{path}:{number}"
+        if len(fields) not in allowed:
+            shape = ("i j x y z qx qy qz qw" if fmt == "liris-txt" else
+                     "query match [score] or query match score x y z qx qy qz qw")
+            raise LirisError(where, f"expected {shape} ({' or '.join(map(str, allowed))} "
+                                    f"columns), got {len(fields)}")
+        q = _integer(fields[0], where, "query") - base
+        m = _integer(fields[1], where, "match") - base
+        if q < 0:
+            raise LirisError(where, f"query {fields[0]} is below the index base {base}")
+        query.append(q)
+        match.append(m if m >= 0 else -1)
+        values = _numbers(fields[2:], where, "score/pose") if len(fields) > 2 else []
+        if fmt == "liris-txt":
+            pose.append(_pose(values))
+        elif len(fields) >= 3:
+            score.append(-values[0] if similarity else values[0])
+            if len(fields) == 10:
+                pose.append(_pose(values[1:]))
+        lines.append(number)
+    with_pose = len(pose) == len(query)
+    if pose and not with_pose:
+        raise LirisError(path, "some lines carry a pose and others do not")
+    if score and len(score) != len(query):
+        raise LirisError(path, "some lines carry a score and others do not")
+    rule = ("liris --export-loops .txt: accepted loops, no score" if fmt == "liris-txt" else
+            f"pair list, {base}-based" + (", score = distance" if score and not similarity
+                                          else ", score = similarity (negated)" if score
+                                          else ", no score"))
+    return LoopFile(path, fmt, np.array(query, dtype=np.int64), np.array(match, dtype=np.int64),
+                    np.array(score, dtype=np.float64) if score else None,
+                    np.array(pose).reshape(-1, 4, 4) if with_pose else None,
+                    np.array(lines, dtype=np.int64), rule=rule)
