@@ -8,31 +8,27 @@ import click
 from click.core import ParameterSource
 
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.evaluation.settings import EXCLUDE_PRESETS, resolve_exclude
 
-#: named exclusion windows (PROTOCOLS.md): the paper's text vs the authors' code
-EXCLUDE_PRESETS = {"paper": 30, "reference": 300}
 #: where the resolved convention preset is kept for the command body (click ctx.meta)
 CONVENTION_KEY = "liris.convention"
 
 
 def parse_exclude(value: str) -> tuple[int, str]:
-    """``"paper"``, ``"reference"`` or an integer to ``(E, name)``."""
-    if value in EXCLUDE_PRESETS:
-        return EXCLUDE_PRESETS[value], value
-    if isinstance(value, str) and value.strip().lower().endswith("s"):
-        raise LirisError(f"--exclude {value}",
-                         "a window in seconds applies to liris eval (by scan times), not here")
-    try:
-        frames = int(value)
-    except ValueError:
-        raise LirisError(
-            f"--exclude {value}",
-            "expected a number of frames, 'paper' (30), 'reference' (300) or seconds such as 30s",
-        ) from None
-    if frames < 1:
-        raise LirisError(f"--exclude {value}", "exclusion window must be at least 1 frame")
-    named = {v: k for k, v in EXCLUDE_PRESETS.items()}.get(frames, "custom")
-    return frames, named
+    """``"paper"``, ``"reference"`` or an integer to ``(E, name)`` (:func:`resolve_exclude`)."""
+    if value not in EXCLUDE_PRESETS:
+        if isinstance(value, str) and value.strip().lower().endswith("s"):
+            raise LirisError(f"--exclude {value}",
+                             "a window in seconds applies to liris eval (by scan times), not here")
+        try:
+            int(value)
+        except ValueError:
+            raise LirisError(
+                f"--exclude {value}",
+                "expected a number of frames, 'paper' (30), 'reference' (300) "
+                "or seconds such as 30s",
+            ) from None
+    return resolve_exclude(value)
 
 
 def parse_exclude_window(value: str) -> tuple[int | None, float | None, str]:
@@ -96,6 +92,49 @@ def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
     return conv
 
 
+def _preset_names(names) -> str:
+    """Preset names comma-separated; a numbered family (``bevplace-00`` ...) as ``first..last``."""
+    import re
+
+    out, families = [], {}
+    for name in names:
+        m = re.fullmatch(r"(.+-)(\d+)", name)
+        if m:
+            if m[1] not in families:
+                families[m[1]] = []
+                out.append(m[1])
+            families[m[1]].append(m[2])
+        else:
+            out.append(name)
+    shown = []
+    for item in out:
+        nums = families.get(item)
+        if nums is None:
+            shown.append(item)
+        elif len(nums) == 1:
+            shown.append(item + nums[0])
+        else:
+            shown.append(f"{item}{nums[0]}..{nums[-1]}")
+    return ", ".join(shown)
+
+
+def convention_help() -> str:
+    """``--convention`` help, listing the presets of the conventions table."""
+    from lidar_iris_eval.evaluation.conventions import CROSS_SESSION_PRESETS, PRESETS
+
+    return (f"A peer's ground-truth convention: {_preset_names(PRESETS)}; with --query/--database "
+            f"also {_preset_names(CROSS_SESSION_PRESETS)} (docs/conventions.md); options given "
+            "explicitly win.")
+
+
+class _ConventionOption(click.Option):
+    """``--convention``, whose help is read from the presets table when shown."""
+
+    def get_help_record(self, ctx):
+        self.help = convention_help()
+        return super().get_help_record(ctx)
+
+
 def ground_truth_options(func):
     """``--radius``, ``--exclude``, ``--distance``, ``--pose-frame`` and ``--convention``.
 
@@ -115,10 +154,7 @@ def ground_truth_options(func):
                   show_default=True,
                   help="Measure distances between camera poses (KITTI, the paper) or LiDAR poses.")
     @click.option("--convention", "convention_name", default=None, metavar="NAME",
-                  help="A peer's ground-truth convention: liris, scancontext-eval, logg3d, "
-                       "iris-cpp, wild-places-intra, contour-context, bevplace-00..08; with "
-                       "--query/--database also wild-places-inter, pointnetvlad "
-                       "(docs/conventions.md); options given explicitly win.")
+                  cls=_ConventionOption)
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         ctx = click.get_current_context()

@@ -127,6 +127,8 @@ def config_extra(convention=None) -> dict:
     extra = {"command": provenance()}
     if _meta().get("config"):
         extra["command"]["replayed_from"] = _meta()["config"]
+    if convention is not None:  # the preset the command line resolved (its rules: `convention`)
+        extra["command"]["convention"] = convention.name
     return extra  # the conventions block is the run's Settings.to_dict() (Evaluation.config)
 
 

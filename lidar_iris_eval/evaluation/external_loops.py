@@ -59,7 +59,7 @@ from lidar_iris_eval.evaluation.ground_truth import (
     pair_distances,
 )
 from lidar_iris_eval.evaluation.poses import pose_errors, relative_ground_truth
-from lidar_iris_eval.evaluation.protocol1 import Protocol1Result, score_protocol1
+from lidar_iris_eval.evaluation.protocol1 import Protocol1Result, score_protocol1, scoring_rules
 from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.io.loops import LoopFile, read_loops
 from lidar_iris_eval.matching.blocks import BestMatches
@@ -204,8 +204,9 @@ def score_loops(loops: LoopFile, positions: np.ndarray, settings: Settings, *,
     best = BestMatches(query=queries, match=best_match, distance=distance,
                        yaw_deg=np.full(len(queries), np.nan), seconds=0.0, n_evaluations=0,
                        source=f"loops:{loops.format}", pose=pose)
-    p1 = score_protocol1(best, positions, gt, settings, forward=forward,
-                         lidar_poses=lidar_poses if pose is not None else None)
+    p1 = score_protocol1(best, positions, gt, forward=forward,
+                         lidar_poses=lidar_poses if pose is not None else None,
+                         **scoring_rules(settings))
 
     rre = np.full(len(query), np.nan)
     rte = np.full(len(query), np.nan)

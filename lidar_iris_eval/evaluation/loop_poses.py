@@ -241,14 +241,16 @@ def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
     carries every protocol 1 rule of the convention; without it, the standard rules and
     ``p1``'s recall denominator.
     """
-    from lidar_iris_eval.evaluation.protocol1 import score_protocol1
+    from lidar_iris_eval.evaluation.protocol1 import score_protocol1, scoring_rules
 
     if loops.accepted is None or loops.settings.acceptance_rule() is None:
         return p1
     distance = np.where(loops.accepted, p1.matches.distance, np.inf)
     matches = replace(p1.matches, distance=distance)
-    rules = run_settings if run_settings is not None else p1.recall_denominator
-    return score_protocol1(matches, positions, p1.gt, rules, forward, lidar_poses)
+    rules = (scoring_rules(run_settings) if run_settings is not None
+             else {"recall_denominator": p1.recall_denominator})
+    return score_protocol1(matches, positions, p1.gt, forward=forward, lidar_poses=lidar_poses,
+                           **rules)
 
 
 def apply(p1, sequence, positions: np.ndarray, forward: np.ndarray | None,

@@ -116,9 +116,13 @@ def score_protocol1(
     matches: BestMatches,
     positions: np.ndarray,
     gt: GroundTruth,
-    recall_denominator: str | Settings = "revisits",
+    recall_denominator: str = "revisits",
     forward: np.ndarray | None = None,
     lidar_poses: np.ndarray | None = None,
+    *,
+    inclusive_radius: bool = False,
+    not_revisit_radius: float | None = None,
+    exclude_seconds: float | None = None,
 ) -> Protocol1Result:
     """Score best matches against ground truth.
 
@@ -127,19 +131,20 @@ def score_protocol1(
     matches : best match of each query (``gt.query_limits() >= 0``).
     positions : ``(N, 3)`` translations in ``gt.frame``.
     gt : ground truth under the run's conventions (radius, E, distance, frame).
-    recall_denominator : ``revisits`` or ``accepted``, or the run's
-        :class:`Settings` (which also names the inclusive radius and the
-        "not a revisit" band: accepted matches in it are neither true nor false).
+    recall_denominator : ``revisits`` or ``accepted``.
     forward : optional ``(N, 3)`` unit forward (driving) directions, to split
         revisits into same- and reverse-direction ones.
     lidar_poses : optional ``(N, 4, 4)`` LiDAR-frame poses, for the relative
         pose errors of the matches (``evaluation/poses.py``).
+    inclusive_radius, not_revisit_radius : a match at exactly the radius is true; accepted
+        matches closer than ``not_revisit_radius`` but not true are neither true nor false
+        (:func:`scoring_rules` takes both from a :class:`Settings`).
+    exclude_seconds : the window in seconds, named in the warning on undefined numbers.
     """
-    settings = recall_denominator if isinstance(recall_denominator, Settings) else None
-    denominator = settings.recall_denominator if settings is not None else recall_denominator
+    denominator = recall_denominator
     check_recall_denominator(denominator)
-    inclusive = settings is not None and settings.inclusive_radius
-    band_radius = settings.not_revisit_radius if settings is not None else None
+    inclusive = bool(inclusive_radius)
+    band_radius = not_revisit_radius
     query, match = matches.query, matches.match
     has = match >= 0
     dist_m = np.full(len(query), np.nan)
@@ -156,7 +161,7 @@ def score_protocol1(
                            denominator)
     else:
         curve = pr_curve(matches.distance, is_true, gt.n_revisits, discount=discount)
-    metrics = summarize(curve, gt.n_revisits, len(query), _context(gt, settings),
+    metrics = summarize(curve, gt.n_revisits, len(query), _context(gt, exclude_seconds),
                         "no queries: the exclusion window is at least the sequence length")
     metrics.update(
         n_queries=int(len(query)),
@@ -188,10 +193,18 @@ def score_protocol1(
                            denominator, gt, pose, rre, rte)
 
 
-def _context(gt: GroundTruth, settings: Settings | None) -> str:
+def scoring_rules(settings: Settings) -> dict:
+    """The keyword rules of :func:`score_protocol1` under a run's :class:`Settings`."""
+    return {"recall_denominator": settings.recall_denominator,
+            "inclusive_radius": settings.inclusive_radius,
+            "not_revisit_radius": settings.not_revisit_radius,
+            "exclude_seconds": settings.exclude_seconds}
+
+
+def _context(gt: GroundTruth, exclude_seconds: float | None) -> str:
     """Names the evaluation in the warning given when its numbers are undefined."""
-    if settings is not None and settings.exclude_seconds is not None:
-        window = f"{settings.exclude_seconds:g} s window"
+    if exclude_seconds is not None:
+        window = f"{exclude_seconds:g} s window"
     else:
         window = f"E={gt.exclude}"
     return f"protocol 1 ({window}, {gt.n_frames} frames, radius {gt.radius:g} m)"
@@ -360,4 +373,5 @@ def protocol1(
     settings, descriptors, limits, gt = protocol1_inputs(descriptors, positions, settings,
                                                          times, values)
     matches = match_protocol1(descriptor, descriptors, limits, settings, progress, executor)
-    return score_protocol1(matches, positions, gt, settings, forward, lidar_poses)
+    return score_protocol1(matches, positions, gt, forward=forward, lidar_poses=lidar_poses,
+                           **scoring_rules(settings))

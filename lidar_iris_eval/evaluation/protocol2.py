@@ -25,8 +25,10 @@ from lidar_iris_eval.evaluation.ground_truth import GroundTruth, compute_ground_
 from lidar_iris_eval.evaluation.metrics import PRCurve, pr_curve, summarize
 from lidar_iris_eval.evaluation.protocol1 import (
     Protocol1Result,
+    match_protocol1,
     protocol1_inputs,
     score_protocol1,
+    scoring_rules,
     settings_from,
     stacked_descriptors,
 )
@@ -164,7 +166,10 @@ def protocols_1_and_2(
     equal those of :func:`~lidar_iris_eval.evaluation.protocol1.protocol1`
     and each distance is computed once. A two-stage method runs its two
     retrieval passes instead (``candidates`` = K, default
-    ``descriptor.default_candidates()``). Returns ``(Protocol1Result, Protocol2Result)``.
+    ``descriptor.default_candidates()``); a global descriptor with ``candidates`` set
+    takes protocol 1 from the same matcher as
+    :func:`~lidar_iris_eval.evaluation.protocol1.protocol1` (its retrieval stage).
+    Returns ``(Protocol1Result, Protocol2Result)``.
     """
     s, descriptors, limits, gt1 = protocol1_inputs(descriptors, positions, settings, times,
                                                    values)
@@ -174,9 +179,17 @@ def protocols_1_and_2(
         k = s.candidates if s.candidates is not None else descriptor.default_candidates()
         matches = two_stage_matches(descriptor, descriptors, limits, k, progress)
         affinity, rule = two_stage_affinity(descriptor, descriptors, k, None), PROTOCOL2_RULE
-        p1 = score_protocol1(matches, positions, gt1, s, forward, lidar_poses)
+        p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
+                            **scoring_rules(s))
         return p1, score_protocol2(affinity, gt2, rule)
+    if s.candidates is not None:  # a global descriptor's retrieval stage, as protocol1 runs it
+        matches = match_protocol1(descriptor, descriptors, limits, s, progress, executor)
+        p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
+                             **scoring_rules(s))
+        return p1, protocol2(descriptor, descriptors, positions, s.replace(candidates=None),
+                             affinity_storage=affinity_storage, executor=executor)
     affinity, curve, matches = _streamed(descriptor, descriptors, gt2, limits, s.pair_budget,
                                          progress, affinity_storage, executor)
-    p1 = score_protocol1(matches, positions, gt1, s, forward, lidar_poses)
+    p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
+                            **scoring_rules(s))
     return p1, score_protocol2(affinity, gt2, ALL_PAIRS_RULE, curve)

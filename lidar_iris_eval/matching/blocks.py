@@ -206,7 +206,7 @@ def best_matches(
     ``exclude`` is E (the standard ``j <= i - E``) or the ``(N,)`` per-query
     limits (:func:`query_limits`). A block of queries is compared with the
     database its last query may see; the few pairs beyond each query's own
-    limit are masked out. ``executor`` (:mod:`lidar_iris_eval.engine`), when
+    limit are masked out. ``executor`` (:mod:`lidar_iris_eval.executor`), when
     given, runs the blocks (e.g. as Dask tasks); the results do not change.
     """
     n = len(descriptors)
