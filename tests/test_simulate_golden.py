@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lidar_iris_eval.io.loops import _is_number
 from lidar_iris_eval.simulate import simulate_sequence
 
 FRAMES = {"tiny-mixed": 24, "tiny-same": 12, "tiny-reverse": 12, "small-mixed": 8,
@@ -64,14 +65,6 @@ def fingerprint(folder: Path) -> dict[str, np.ndarray]:
                ids.hexdigest()]
     return {"digests": np.array(digests), "counts": np.array(counts),
             "sample": np.concatenate(samples), "text": np.array(text)}
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def assert_golden(folder: Path, preset: str) -> None:
