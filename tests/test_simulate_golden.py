@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidar_iris_eval.io.loops import _is_number
+from lidar_iris_eval.io.poses import is_number
 from lidar_iris_eval.simulate import simulate_sequence
 
 FRAMES = {"tiny-mixed": 24, "tiny-same": 12, "tiny-reverse": 12, "small-mixed": 8,
@@ -60,7 +60,7 @@ def fingerprint(folder: Path) -> dict[str, np.ndarray]:
             ids.update(json.dumps(manifest, sort_keys=True).encode())
         else:  # poses.txt, times.txt, calib.txt
             text += [float(v) for v in path.read_text().replace(":", " ").split()
-                     if _is_number(v)]
+                     if is_number(v)]
     digests = [hashlib.sha256("\n".join(names).encode()).hexdigest(), labels.hexdigest(),
                ids.hexdigest()]
     return {"digests": np.array(digests), "counts": np.array(counts),

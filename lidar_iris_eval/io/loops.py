@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, read_text
-from lidar_iris_eval.io.poses import quaternion_to_matrix
+from lidar_iris_eval.io.poses import is_number, quaternion_to_matrix
 
 LOOP_FORMATS = ("g2o", "matches", "liris-txt", "pairs")
 #: the columns a matches.csv must have
@@ -160,18 +160,10 @@ def detect_format(path: Path, text: str) -> str:
     header = [f.strip().lower() for f in first]
     if all(c in header for c in MATCHES_COLUMNS):
         return "matches"
-    body = records[1:] if not _is_number(first[0]) else records
+    body = records[1:] if not is_number(first[0]) else records
     if body and all(len(f) == 9 for _, f in body):
         return "liris-txt"
     return "pairs"
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def read_loops(path: str | Path, fmt: str | None = None, *, index_base: int = 0,
@@ -295,7 +287,7 @@ def _read_matches(path: Path, text: str) -> LoopFile:
 
 def _read_columns(path: Path, text: str, fmt: str, base: int, similarity: bool) -> LoopFile:
     records = list(_records(text))
-    if records and not _is_number(records[0][1][0]):
+    if records and not is_number(records[0][1][0]):
         records = records[1:]  # a header
     if not records:
         raise LirisError(path, "no loops in the file")

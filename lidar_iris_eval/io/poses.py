@@ -47,6 +47,15 @@ def check_rotations(poses: np.ndarray, path: Path, line_numbers: list[int] | Non
         raise LirisError(where, f"{what}: {rotation_problem(rotations[first])}")
 
 
+def is_number(text: str) -> bool:
+    """Whether ``text`` reads as a float (a header line of a pose or loop table is not)."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def check_finite(values, where: str, what: str) -> None:
     """Raise one LirisError at ``where`` (``file:line``) if a value of a pose row is NaN or inf.
 

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lidar_iris_eval.errors import LirisError, read_text
-from lidar_iris_eval.io.poses import check_finite
+from lidar_iris_eval.io.poses import check_finite, is_number
 from lidar_iris_eval.io.scans import Scan
 from lidar_iris_eval.io.sequence import Sequence, hash_file_samples
 from lidar_iris_eval.io.timematch import match_poses
@@ -197,7 +197,7 @@ def read_table(path: Path, columns: int, what: str, delimiter: str | None = None
         text = line.strip()
         if not text or text[0] in "#%":
             continue
-        if skip_header and not rows and not _numeric(text.replace(",", " ").split()[0]):
+        if skip_header and not rows and not is_number(text.replace(",", " ").split()[0]):
             continue
         parts = text.split(delimiter) if delimiter else text.replace(",", " ").split()
         try:
@@ -223,7 +223,7 @@ def read_stamp_column(path: Path, what: str) -> np.ndarray:
         if not text or text[0] in "#%":
             continue
         head = text.replace(",", " ").split()[0]
-        if not stamps and not _numeric(head):
+        if not stamps and not is_number(head):
             continue  # header row
         try:
             if "e" in head.lower():  # scientific notation: exact only to float precision
@@ -233,14 +233,6 @@ def read_stamp_column(path: Path, what: str) -> np.ndarray:
         except ValueError:
             raise LirisError(f"{path}:{number}", f"malformed {what} line (stamp)") from None
     return np.asarray(stamps, dtype=np.int64)
-
-
-def _numeric(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def finite_rows(table: np.ndarray, path: Path, what: str) -> np.ndarray:
