@@ -161,7 +161,7 @@ def compute_ground_truth(
 
 
 def database_limits(n_frames: int, conv, times: np.ndarray | None = None,
-                    source: str = "times.txt") -> np.ndarray:
+                    source: str = "scan times") -> np.ndarray:
     """``(N,)`` last database index each query may match, ``-1`` when it is not a query.
 
     ``conv`` is a :class:`~lidar_iris_eval.evaluation.settings.Settings`. Frame
