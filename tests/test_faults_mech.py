@@ -276,3 +276,16 @@ def test_seed_at_the_32_bit_limit_is_accepted():
 def test_bench_protocol_and_its_skip_are_contradictory(tmp_path):
     one_error(liris(["bench", "--protocol", "1", "--skip-protocol1"], tmp_path),
               "--skip-protocol1", "contradictory")
+
+
+def test_foreign_warnings_are_one_line_without_source_paths(capsys):
+    """NumPy's or matplotlib's warnings printed ``/…/metrics.py:218: …`` and the source line."""
+    from lidar_iris_eval import cli as cli_module
+    from lidar_iris_eval.errors import LirisWarning
+
+    cli_module._show_warning(RuntimeWarning("invalid value\nencountered in divide"),
+                             RuntimeWarning, "/site/numpy/core/_methods.py", 218)
+    cli_module._show_warning(LirisWarning("no positives"), LirisWarning, "/x/metrics.py", 218)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == ["liris: warning: RuntimeWarning: invalid value encountered in divide",
+                     "liris: warning: no positives"]

@@ -52,7 +52,8 @@ def test_symlink_loop_through_the_cli_is_one_line(tmp_path, capsys):
     code, _, err = run_cli(["gt", str(root)], capsys)
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2
-    assert lines == [f"liris: error: {loop}: scan is a broken symbolic link or a symbolic-link loop"]
+    assert lines == [f"liris: error: {loop}: scan is a broken symbolic link or a "
+                     "symbolic-link loop"]
 
 
 def test_count_mismatch_names_the_missing_scan(tmp_path):
