@@ -289,3 +289,16 @@ def test_foreign_warnings_are_one_line_without_source_paths(capsys):
     lines = capsys.readouterr().err.splitlines()
     assert lines == ["liris: warning: RuntimeWarning: invalid value encountered in divide",
                      "liris: warning: no positives"]
+
+
+def test_show_of_a_run_without_config_yaml_warns(run_dir, tmp_path):
+    """It used to show liris's default conventions as if they were the run's, without a word."""
+    import shutil
+
+    run = Path(shutil.copytree(run_dir, tmp_path / "C"))
+    (run / "config.yaml").unlink()
+    res = liris(["show", run], tmp_path)
+    assert res.returncode == 0, res.stderr
+    warnings_ = [line for line in res.stderr.splitlines() if line.startswith("liris: warning:")]
+    assert len(warnings_) == 1 and "config.yaml: missing" in warnings_[0], res.stderr
+    assert "Traceback" not in res.stderr

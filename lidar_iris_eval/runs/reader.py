@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.runs.schema import check_metrics
 
 #: columns a reader of each table relies on (more may be present)
@@ -327,6 +327,11 @@ def load_run(path: str | Path) -> Run:
             raise LirisError(config_path, f"not valid YAML ({_one_line(err)})") from None
         if not isinstance(config, dict):
             raise LirisError(config_path, "expected a mapping of settings")
+    else:
+        # every liris writer leaves one; without it the run shows with liris's
+        # default conventions and cannot be replayed, which must not pass unsaid
+        warn(config_path, "missing: the run's settings are unknown, shown with liris's "
+                          "default conventions, and it cannot be replayed with --config")
     return Run(path=folder, config=config, metrics=metrics)
 
 
