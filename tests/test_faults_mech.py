@@ -302,3 +302,14 @@ def test_show_of_a_run_without_config_yaml_warns(run_dir, tmp_path):
     warnings_ = [line for line in res.stderr.splitlines() if line.startswith("liris: warning:")]
     assert len(warnings_) == 1 and "config.yaml: missing" in warnings_[0], res.stderr
     assert "Traceback" not in res.stderr
+
+
+def test_plot_of_an_iris_run_does_not_warn_about_parameters_nobody_set(seq, tmp_path):
+    """config.yaml records every parameter; plot rebuilt Iris from it and warned
+    "lidar-iris.shift_window: ignored" on every default run."""
+    res = liris(["eval", seq, "-q", "-d", "lidar-iris", "--protocol", "1", "--out", tmp_path / "R"],
+                tmp_path)
+    assert res.returncode == 0, res.stderr
+    res = liris(["plot", tmp_path / "R", "--out", tmp_path / "figs"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "shift_window" not in res.stderr and "Traceback" not in res.stderr, res.stderr

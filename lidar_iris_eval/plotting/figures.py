@@ -11,13 +11,14 @@ write them under stable names.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.errors import LirisError, LirisWarning, warn
 from lidar_iris_eval.plotting import style
 from lidar_iris_eval.plotting.affinity import affinity_figure
 from lidar_iris_eval.plotting.pr import pr_figure, protocol_title, run_curves
@@ -336,7 +337,12 @@ def _iris_descriptor(run: Run):
 
     preset, params = run.descriptor_params(IRIS)
     try:
-        return get_descriptor(IRIS, preset=preset, **params)
+        # config.yaml records every parameter, set by the user or not; a figure
+        # must not warn that shift_window is ignored when nobody set it (the
+        # run's own eval warned already when somebody did)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r".*ignored: ", category=LirisWarning)
+            return get_descriptor(IRIS, preset=preset, **params)
     except LirisError as err:
         warn(run.path / "config.yaml", f"{err.problem}; using the default LiDAR Iris preset")
         return get_descriptor(IRIS)
