@@ -149,6 +149,18 @@ def test_inf_in_oxford_ins_names_the_line(tmp_path):
     one_error(liris(["gt", run], tmp_path), "ins.csv:4", "NaN or inf")
 
 
+@pytest.mark.parametrize("writer", ["write_oxford_bin", "write_oxford_png"])
+def test_nan_in_oxford_extrinsics_names_the_file(tmp_path, writer):
+    """The raw (PNG) and the .bin layout share the INS and extrinsics readers."""
+    import dataset_writers
+
+    run = getattr(dataset_writers, writer)(tmp_path, dataset_writers.loop_case(2))
+    run = run[0] if isinstance(run, tuple) else run
+    (run / "extrinsics").mkdir(exist_ok=True)
+    (run / "extrinsics" / "ins.txt").write_text("-1.7132 0.1181 nan -0.0125 0.0400 0.0050\n")
+    one_error(liris(["gt", run], tmp_path), "ins.txt", "NaN or inf")
+
+
 def trajectory(path: Path, bad: str | None) -> Path:
     lines = [f"1 0 0 {2.0 * i} 0 1 0 0 0 0 1 0" for i in range(8)]
     if bad is not None:
