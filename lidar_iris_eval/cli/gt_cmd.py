@@ -51,10 +51,14 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
         sequence, poses_path, calib_path, pose_frame, reader_options
     )
     gt = compute_ground_truth(positions, radius, exclude_frames, distance, pose_frame)
+    if exclude_name == "custom" and conv.name not in ("liris", "custom"):
+        exclude_name = f"convention {conv.name}"  # E came from the convention, not from --exclude
     summary = {"source": str(source), **gt.summary(), "exclude_preset": exclude_name}
-    if conv.name != "liris":
-        conv = with_overrides(conv, pose_frame=pose_frame)
-        summary.update(convention_counts(positions, conv, getattr(seq, "times", None)))
+    conv = with_overrides(conv, pose_frame=pose_frame)
+    counts = convention_counts(positions, conv, getattr(seq, "times", None))
+    if conv.name == "liris":  # gt.summary() already counted; keep its numbers, add the keys
+        counts = {k: v for k, v in counts.items() if k not in summary}
+    summary.update(counts)
     if check_scans:
         if seq is None:
             raise LirisError("--check-scans", "needs a SEQUENCE folder, not only --poses")
