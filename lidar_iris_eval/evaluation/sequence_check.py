@@ -325,15 +325,20 @@ def _check_motion(report: CheckReport, poses: np.ndarray, times: np.ndarray,
     summary = report.summary
     summary["speed_max_m_s"] = float(np.nanmax(speed)) if timed.any() else None
     summary["yaw_rate_max_deg_s"] = float(np.nanmax(yaw_rate)) if timed.any() else None
-    for k in np.flatnonzero(timed & (speed > limits.max_speed)).tolist():
-        report.add("speed jump", f"{step[k]:.2f} m in {dt[k]:.3f} s between frames {k} and "
-                                 f"{k + 1} ({speed[k]:.1f} m/s > {limits.max_speed:g} m/s, "
-                                 f"{limits.platform})", (k, k + 1), float(speed[k]))
-    for k in np.flatnonzero(timed & (yaw_rate > limits.max_yaw_rate)).tolist():
-        report.add("yaw-rate jump", f"{turn[k]:.1f} deg in {dt[k]:.3f} s between frames {k} and "
-                                    f"{k + 1} ({yaw_rate[k]:.0f} deg/s > "
-                                    f"{limits.max_yaw_rate:g} deg/s, {limits.platform})",
-                   (k, k + 1), float(yaw_rate[k]))
+    for check, value, limit, unit, moved, word in (
+            ("speed jump", speed, limits.max_speed, "m/s", step, "m"),
+            ("yaw-rate jump", yaw_rate, limits.max_yaw_rate, "deg/s", turn, "deg")):
+        for start, stop in _runs(timed & (value > limit)):
+            peak = float(np.max(value[start:stop]))
+            if stop - start == 1:
+                detail = (f"{moved[start]:.2f} {word} in {dt[start]:.3f} s between frames "
+                          f"{start} and {start + 1} ({peak:.1f} {unit} > {limit:g} {unit}, "
+                          f"{limits.platform})")
+            else:
+                detail = (f"{stop - start} consecutive steps above {limit:g} {unit} "
+                          f"({limits.platform}) between frames {start} and {stop}, up to "
+                          f"{peak:.1f} {unit}")
+            report.add(check, detail, (start, stop), peak)
     # untimed steps (duplicate stamps) count as still when the pose does not move
     still = np.where(timed, speed < limits.stationary_speed, step < 1e-6)
     spans = 0
