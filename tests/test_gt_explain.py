@@ -167,6 +167,20 @@ def test_diff_equals_difference_of_gt_counts(kitti_dir, capsys, tmp_path):
     only_b = {int(r["i"]) for r in rows if r["kind"] == "revisit_query" and r["only_in"] == "b"}
     assert only_a == set(np.flatnonzero(a & ~b).tolist())
     assert only_b == set(np.flatnonzero(b & ~a).tolist())
+    # the deciding rule, independently: does B with A's window (E = 30, every frame a query)
+    # count the query, or B with A's radius and distance (4 m, 3-D)?
+    b_window = _brute_revisits(cam[:, [0, 2]], 5.0, 30)
+    a_radius = _brute_revisits(cam, 4.0, 49, last_frame=False)
+    for r in rows:
+        if r["kind"] != "revisit_query":
+            continue
+        q = int(r["i"])
+        if r["only_in"] == "a":
+            expected = "E" if b_window[q] else ("radius" if a_radius[q] else None)
+        else:  # A (liris) with B's radius-and-frame, or B's window
+            expected = "radius" if b_window[q] else None
+        if expected is not None:
+            assert expected in r["decided_by"], (q, r["decided_by"], r["why_not_in_other"])
     pairs = [r for r in rows if r["kind"] == "positive_pair"]
     assert 2 * len(pairs) == (d["positive_ordered_pairs_only_a"]
                               + d["positive_ordered_pairs_only_b"])
@@ -205,3 +219,16 @@ def test_diff_figure_marks_exactly_the_differing_queries():
     lines = {line.get_gid(): line for line in fig.axes[0].get_lines()}
     assert list(lines["only:a"].get_xdata()) == [3.0, 4.0]
     assert list(lines["only:b"].get_xdata()) == [9.0]
+
+
+def test_diff_with_a_changed_rule_gives_790(kitti_dir, capsys):
+    code, out, err = run_cli(["gt", "--poses", kitti_dir / "poses" / "00.txt", "--diff",
+                              "scancontext-eval", "scancontext-eval:radius=4", "--json"], capsys)
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["revisit_queries_scancontext-eval"] == 803
+    assert d["revisit_queries_scancontext-eval:radius=4"] == 790
+    assert (d["revisit_queries_only_a"], d["revisit_queries_only_b"]) == (13, 0)
+    code, _, err = run_cli(["gt", "--poses", kitti_dir / "poses" / "00.txt", "--diff", "liris",
+                            "logg3d:exclude=3"], capsys)
+    assert_one_line_error(code, err, "no window in frames")

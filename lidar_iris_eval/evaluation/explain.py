@@ -263,16 +263,6 @@ class ConventionTruth:
             out["rule"] = (f"radius: no database frame (0..{limit}) within {conv.radius:g} m; "
                            f"nearest is {nearest} at {dists[nearest]:.3f} m "
                            f"({_describe_distance(conv)})")
-            # frames within the radius that the window (not the radius) leaves out
-            late = np.arange(limit + 1, q)
-            close = late[within_radius(np.linalg.norm(self.coords[late] - self.coords[q], axis=1),
-                                       conv.radius, conv.inclusive_radius)]
-            if len(close):
-                first = int(close[0])
-                rule = self.outside_database_reason(q, first).split(":")[0]
-                out["rule"] = (f"{rule}: frames {first}..{int(close[-1])} are within "
-                               f"{conv.radius:g} m but outside the database (0..{limit}); "
-                               + out["rule"].split("; ", 1)[1])
         return out
 
 
@@ -408,37 +398,79 @@ class ConventionDiff:
             "revisit_queries_a_minus_b": int(len(self.queries_only_a) - len(self.queries_only_b)),
         }
 
+    def deciding_rules(self, has: ConventionTruth, lacks: ConventionTruth,
+                       queries: np.ndarray) -> dict[int, list[str]]:
+        """Per query of ``has`` that ``lacks`` does not count: the rules that decide.
+
+        A rule decides when giving ``lacks`` that one rule of ``has`` (the
+        radius; the window: E, seconds, split, last frame; the frame and
+        distance) makes the query a revisit, counted by the same functions.
+        """
+        groups = {"radius": ("radius", "inclusive_radius"),
+                  "window": ("exclude", "exclude_seconds", "window_rule", "database_frames",
+                             "query_start", "last_frame_query"),
+                  "frame": ("pose_frame", "distance")}
+        out: dict[int, list[str]] = {int(q): [] for q in queries.tolist()}
+        if not out:
+            return out
+        for rule, keys in groups.items():
+            values = {k: getattr(has.conv, k) for k in keys}
+            if all(getattr(lacks.conv, k) == v for k, v in values.items()):
+                continue
+            variant = ConventionTruth(lacks.traj, lacks.conv.replace(**values))
+            for q in out:
+                if variant.revisit[q]:
+                    out[q].append(_window_name(has.conv) if rule == "window" else rule)
+        return out
+
     def rows(self) -> list[dict]:
         """One row per differing revisit query, then per differing unordered positive pair.
 
-        A query row names the rule that decides under the convention lacking it
-        (from :meth:`ConventionTruth.query_verdict`).
+        A query row names the rules that decide (:meth:`deciding_rules`) and
+        the verdict of the convention lacking it (:meth:`ConventionTruth.query_verdict`).
         """
         out = []
         for has, lacks, queries, tag in ((self.a, self.b, self.queries_only_a, "a"),
                                          (self.b, self.a, self.queries_only_b, "b")):
+            deciders = self.deciding_rules(has, lacks, queries)
             for q in queries.tolist():
                 mine, other = has.query_verdict(q), lacks.query_verdict(q)
+                rules = deciders[q]
+                why = (f"decided by {' and '.join(rules)} ({has.conv.name}'s "
+                       f"{' / '.join(rules)} makes it a revisit under {lacks.conv.name}); "
+                       if rules else "decided by several rules together; ") + other["rule"]
                 out.append({"kind": "revisit_query", "only_in": tag,
                             "convention": has.conv.name, "i": q, "j": mine["partner"],
                             f"distance_{self.a.conv.name}_m": _distance_or_none(self.a, q,
                                                                                   mine["partner"]),
                             f"distance_{self.b.conv.name}_m": _distance_or_none(self.b, q,
                                                                                   mine["partner"]),
-                            "why_not_in_other": other["rule"]})
+                            "decided_by": "+".join(rules) or "several",
+                            "why_not_in_other": why})
         for has, lacks, pairs, tag in ((self.a, self.b, self.pairs_only_a, "a"),
                                        (self.b, self.a, self.pairs_only_b, "b")):
             ra = "<=" if lacks.conv.inclusive_radius else "<"
             for i, j in pairs.tolist():
                 d_other = lacks.distance(i, j)
                 out.append({"kind": "positive_pair", "only_in": tag,
-                            "convention": has.conv.name, "i": j, "j": i,
+                            "convention": has.conv.name, "i": j, "j": i, "decided_by": "radius"
+                            if lacks.conv.pose_frame == has.conv.pose_frame
+                            and lacks.conv.distance == has.conv.distance else "radius+frame",
                             f"distance_{self.a.conv.name}_m": self.a.distance(i, j),
                             f"distance_{self.b.conv.name}_m": self.b.distance(i, j),
                             "why_not_in_other": f"radius: {d_other:.3f} m vs {ra} "
                                                 f"{lacks.conv.radius:g} m "
                                                 f"({_describe_distance(lacks.conv)})"})
         return out
+
+
+def _window_name(conv: Settings) -> str:
+    """The name of a convention's window rule: E, window (seconds), database split."""
+    if conv.database_frames is not None:
+        return "database split"
+    if conv.exclude_seconds is not None:
+        return "window"
+    return "E" if conv.last_frame_query else "E/last frame"
 
 
 def _distance_or_none(truth: ConventionTruth, i: int, j: int | None) -> float | None:
@@ -452,12 +484,42 @@ def _pair_set_difference(p: np.ndarray, q: np.ndarray, n: int) -> np.ndarray:
     return p[~np.isin(kp, kq)]
 
 
-def preset_named(name: str, flag: str) -> Settings:
-    """The single-sequence preset ``name``; anything else is a LirisError naming ``flag``."""
+#: rules a ``--diff`` spec may change after the preset name (``NAME:radius=4,exclude=50``)
+SPEC_KEYS = {"radius": float, "exclude": int, "distance": str, "pose_frame": str}
+
+
+def preset_named(spec: str, flag: str) -> Settings:
+    """The single-sequence preset of ``spec``: ``NAME`` or ``NAME:key=value,...``.
+
+    ``key`` is one of :data:`SPEC_KEYS` (``radius``, ``exclude`` in frames,
+    ``distance``, ``pose_frame``); the result is named ``spec``. Anything else
+    is a LirisError naming ``flag``.
+    """
+    from lidar_iris_eval.evaluation.conventions import with_overrides
+
+    name, _, rest = spec.partition(":")
     if name not in PRESETS:
-        raise LirisError(f"{flag}{name}", f"not a single-sequence convention preset; choose "
-                                           f"from {', '.join(PRESETS)}")
-    return get_convention(name)
+        raise LirisError(f"{flag}{spec}", f"not a single-sequence convention preset; choose "
+                                          f"from {', '.join(PRESETS)} (optionally "
+                                          f"NAME:radius=4,exclude=50)")
+    conv = get_convention(name)
+    if not rest:
+        return conv
+    values = {}
+    for item in rest.split(","):
+        key, eq, text = item.partition("=")
+        key = key.strip().replace("-", "_")
+        if not eq or key not in SPEC_KEYS:
+            raise LirisError(f"{flag}{spec}", f"expected key=value with key one of "
+                                              f"{', '.join(SPEC_KEYS)}")
+        try:
+            values[key] = SPEC_KEYS[key](text.strip())
+        except ValueError:
+            raise LirisError(f"{flag}{spec}", f"bad value {text!r} for {key}") from None
+    if "exclude" in values and (conv.exclude_seconds is not None
+                                or conv.database_frames is not None):
+        raise LirisError(f"{flag}{spec}", f"{name} has no window in frames to change")
+    return with_overrides(conv, name=spec, source=f"{conv.source}; changed: {rest}", **values)
 
 
 def diff_conventions(traj: Trajectory, name_a: str, name_b: str) -> ConventionDiff:
@@ -500,7 +562,7 @@ def write_diff_csv(diff: ConventionDiff, path: Path) -> int:
     from lidar_iris_eval.atomic import atomic_write
 
     rows = diff.rows()
-    columns = ["kind", "only_in", "convention", "i", "j",
+    columns = ["kind", "only_in", "convention", "i", "j", "decided_by",
                f"distance_{diff.a.conv.name}_m", f"distance_{diff.b.conv.name}_m",
                "why_not_in_other"]
     buf = io.StringIO()
