@@ -62,6 +62,10 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
     a revisit query has a positive partner at least --exclude frames earlier.
     """
     if explain is not None or diff is not None:
+        if check_scans or gt_kind != "pose":
+            raise LirisError("--check-scans" if check_scans else "--gt overlap",
+                             "not with --explain / --diff (--explain reports the pair's overlap "
+                             "when the scans are there)")
         return _explain_or_diff(sequence, poses_path, calib_path, explain, diff, diff_csv,
                                 diff_plot, overwrite, as_json, reader_options)
     if diff_csv is not None or diff_plot is not None:
@@ -155,7 +159,7 @@ def _echo_explain(result: dict) -> None:
         if key not in ("i", "j"):
             click.echo(f"  {key}: {format_value(value)}")
     rows = [{"convention": r["convention"], "pair": r["status"],
-             f"{pair['i']} revisit query": r["i_revisit_query"],
+             f"I={pair['i']} revisit query": r["i_revisit_query"],
              "radius": r["radius_m"], "window": r["window"], "distance": r["distance"],
              "frame": r["pose_frame"]} for r in result["conventions"]]
     echo_table(rows)
