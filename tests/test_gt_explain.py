@@ -91,6 +91,13 @@ def test_explain_stationary_span_names_the_e_rule(kitti_dir, capsys):
     i = j + 35
     rows = {r["convention"]: r for r in _explain(kitti_dir, capsys, i, j)["conventions"]}
     assert rows["liris"]["status"] == "positive"
+    # i as a query: a revisit at E = 30 but not at E = 50 (brute force) is the stop's doing
+    at30, at50 = _brute_revisits(cam, 4.0, 30), _brute_revisits(cam, 4.0, 50)
+    assert rows["liris"]["i_revisit_query"] == bool(at30[i])
+    assert at30[i] and not at50[i], "the pair should sit in KITTI 00's stop"
+    assert "pseudo-revisit" in rows["liris"]["i_rule"] and "(E) decides" in rows["liris"]["i_rule"]
+    far = {r["convention"]: r for r in _explain(kitti_dir, capsys, 4443, 3)["conventions"]}
+    assert at50[4443] and "pseudo-revisit" not in far["liris"]["i_rule"]
     sc = rows["scancontext-eval"]
     assert sc["status"] == "negative" and sc["decided_by"] == ["E"]
     assert sc["rule"].startswith("E:") and "< E = 49" in sc["rule"]

@@ -259,6 +259,17 @@ class ConventionTruth:
             out["rule"] = (f"revisit: nearest database frame {nearest} is {dists[nearest]:.3f} m "
                            f"away ({sign} {conv.radius:g} m, {_describe_distance(conv)}), "
                            f"{q - nearest} frames earlier")
+            # the sensor never left the radius since its partners: a stop, and only the
+            # window (E) makes it a revisit
+            before = np.linalg.norm(self.coords[:q] - self.coords[q], axis=1)
+            away = np.flatnonzero(~within_radius(before, conv.radius, conv.inclusive_radius))
+            last_away = int(away[-1]) if len(away) else -1
+            partners = np.flatnonzero(within_radius(dists, conv.radius, conv.inclusive_radius))
+            if partners.min() > last_away:
+                out["pseudo_revisit"] = True
+                out["rule"] += (f"; a pseudo-revisit: the sensor stayed within {conv.radius:g} m "
+                                f"since frame {last_away + 1}, so only the window "
+                                f"({_window_name(conv)}) decides")
         else:
             out["rule"] = (f"radius: no database frame (0..{limit}) within {conv.radius:g} m; "
                            f"nearest is {nearest} at {dists[nearest]:.3f} m "
