@@ -185,3 +185,17 @@ def test_bad_input_is_one_line(clean_sim, capsys, tmp_path):
     code, _, err = run_cli(["datasets", "check", clean_sim, "--plot", mine], capsys)
     assert_one_line_error(code, err, "already exists")
     assert mine.read_bytes() == b"not liris'"
+
+
+def test_dataset_reader_dropped_scans_are_counted(tmp_path, capsys):
+    from dataset_writers import loop_case, write_mulran
+
+    case = loop_case(1)
+    seq = write_mulran(tmp_path, case)  # one scan 5 s after the last pose: no pose
+    report = _check(capsys, seq)
+    assert report["scans"] == len(case.times) and report["scans_listed"] == len(case.times) + 1
+    assert "scans without poses" in _found(report)
+    dropped = next(f for f in report["findings"] if f["check"] == "scans without poses")
+    assert dropped["value"] == 1 and report["matched_by"].startswith("the dataset reader")
+    clean = write_mulran(tmp_path / "clean", case, extra_scan=False)
+    assert "scans without poses" not in _found(_check(capsys, clean))

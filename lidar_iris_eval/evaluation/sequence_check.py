@@ -100,7 +100,8 @@ class TimingInput:
         frame when there is one), for the pseudo-revisit count.
     pose_times : ``(M,)`` stamps of the raw pose file, or None (one pose per line).
     n_scans_listed : scan files found before matching, or None when unknown.
-    matched_by : ``"index"`` or ``"time"`` (how scans got their poses).
+    matched_by : ``"index"``, ``"time"`` or ``"reader"`` (how scans got their poses;
+        ``"reader"``: a dataset reader matched them, its raw pose stamps are not read here).
     tolerance : seconds, the time-matching tolerance.
     assumed_rate : Hz used for missing scan times (None: time checks are skipped).
     source : the sequence, for messages.
@@ -275,6 +276,8 @@ def _check_poses_stream(report: CheckReport, data: TimingInput, limits: CheckLim
     summary = report.summary
     summary["matched_by"] = (
         "index (one pose line per scan)" if data.matched_by == "index" else
+        "the dataset reader (by time or by index: docs/datasets.md, Time matching)"
+        if data.matched_by == "reader" else
         f"time (linear / slerp interpolation; scans with no pose sample within "
         f"{data.tolerance:g} s are dropped)")
     summary["scans_listed"] = data.n_scans_listed
@@ -396,6 +399,11 @@ def timing_input(sequence: Path | None, poses: Path | None = None, calib: Path |
     listed = _listed_scans(seq) if not {"frames", "every", "min_distance"} & set(opts) else None
     matched_by = "time" if (pose_times is not None and listed is not None and n_raw != listed) \
         else "index"
+    unmatched = getattr(seq, "unmatched", None)
+    if raw_path is None and unmatched is not None:  # a dataset reader: it matched the poses
+        matched_by = "reader"
+        listed = len(seq) + int(unmatched) if listed is None or listed < len(seq) + unmatched \
+            else listed
     gt = seq.positions("camera" if seq.camera_poses is not None else "lidar")
     return TimingInput(times=None if seq.times is None else np.asarray(seq.times, float),
                        poses=np.asarray(seq.poses, float), ground_truth_positions=gt,
