@@ -45,7 +45,9 @@ from lidar_iris_eval.ownership import check_new_files
                    "the deciding rule (docs/conventions.md).")
 @click.option("--diff", "diff", nargs=2, default=None, metavar="A B",
               help="The positive pairs and revisit queries that convention A has and B lacks, "
-                   "and the reverse (counts; --diff-csv, --diff-plot).")
+                   "and the reverse (counts; --diff-csv, --diff-plot). A or B may change a "
+                   "preset's rules: scancontext-eval:radius=4 (radius, exclude, distance, "
+                   "pose_frame).")
 @click.option("--diff-csv", type=click.Path(path_type=Path), default=None,
               help="With --diff: write every differing query and pair, with the rule, to this CSV.")
 @click.option("--diff-plot", type=click.Path(path_type=Path), default=None,
