@@ -239,3 +239,31 @@ def test_diff_with_a_changed_rule_gives_790(kitti_dir, capsys):
     code, _, err = run_cli(["gt", "--poses", kitti_dir / "poses" / "00.txt", "--diff", "liris",
                             "logg3d:exclude=3"], capsys)
     assert_one_line_error(code, err, "no window in frames")
+
+
+def test_diff_on_a_lidar_only_real_sequence_matches_gt(capsys):
+    """LiDAR poses only, windows in seconds: the counts are still those of liris gt."""
+    from conftest import SHARED
+
+    d = SHARED / "data" / "real" / "hku-livox-avia-1"
+    if not d.is_dir():
+        pytest.skip("../shared/data/real/hku-livox-avia-1 is not available")
+    seq = [d / "Scans", "--poses", d / "optimized_poses.txt", "--times", d / "times.txt",
+           "--lidar-frame-poses"]
+    counts = {}
+    for name in ("liris", "logg3d"):
+        code, out, err = run_cli(["gt", *seq, "--convention", name, "--json"], capsys)
+        assert code == 0, err
+        counts[name] = json.loads(out)
+    code, out, err = run_cli(["gt", *seq, "--diff", "liris", "logg3d", "--json"], capsys)
+    assert code == 0, err
+    diff = json.loads(out)
+    for key in ("revisit_queries", "positive_ordered_pairs"):
+        assert diff[f"{key}_liris"] == counts["liris"][key]
+        assert diff[f"{key}_logg3d"] == counts["logg3d"][key]
+        assert diff[f"{key}_only_a"] - diff[f"{key}_only_b"] == \
+            counts["liris"][key] - counts["logg3d"][key]
+    code, out, _ = run_cli(["gt", *seq, "--explain", 160, 100, "--json"], capsys)
+    rows = {r["convention"]: r for r in json.loads(out)["conventions"]}
+    assert rows["liris"]["pose_frame"] == "lidar" and rows["liris"]["status"] != "unavailable"
+    assert rows["logg3d"]["status"] != "unavailable"  # times are there

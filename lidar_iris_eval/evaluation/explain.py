@@ -126,6 +126,14 @@ def _describe_distance(conv: Settings) -> str:
     return f"3-D, {conv.pose_frame} poses"
 
 
+def applied(traj: Trajectory, conv: Settings) -> Settings:
+    """``conv`` as ``liris gt`` applies it to ``traj``: a camera-frame preset on a sequence
+    without camera poses measures between the LiDAR poses (``resolve_pose_frame``)."""
+    if conv.pose_frame == "camera" and not traj.has("camera") and traj.sequence is not None:
+        return conv.replace(pose_frame="lidar")
+    return conv
+
+
 def unavailable_reason(traj: Trajectory, conv: Settings) -> str | None:
     """Why ``conv`` cannot be applied to ``traj`` (rule ``frame``), or None."""
     if not traj.has(conv.pose_frame):
@@ -355,6 +363,8 @@ def explain_pair(traj: Trajectory, i: int, j: int,
                           else f"db 0..{conv.database_frames - 1}, q >= {conv.query_start}"
                           if conv.database_frames is not None else f"E={conv.exclude}"),
                "distance": conv.distance, "pose_frame": conv.pose_frame}
+        conv = applied(traj, conv)
+        row["pose_frame"] = conv.pose_frame
         why = unavailable_reason(traj, conv)
         if why is not None:
             rows.append({**row, "status": "unavailable", "rule": why, "i_revisit_query": None,
@@ -542,6 +552,7 @@ def diff_conventions(traj: Trajectory, name_a: str, name_b: str) -> ConventionDi
     truths = []
     for flag, name in (("A", name_a), ("B", name_b)):
         conv = preset_named(name, f"--diff {flag}=")
+        conv = applied(traj, conv)
         why = unavailable_reason(traj, conv)
         if why is not None:
             raise LirisError(f"--diff {flag}={name}", why)
