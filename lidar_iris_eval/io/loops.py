@@ -40,7 +40,9 @@ import numpy as np
 from lidar_iris_eval.errors import LirisError, read_text
 from lidar_iris_eval.io.poses import is_number, quaternion_to_matrix
 
-LOOP_FORMATS = ("g2o", "matches", "liris-txt", "pairs")
+LOOP_FORMATS = ("g2o", "matches", "liris-txt", "pairs", "tum")
+#: default tolerance (s) of a time stamp matched to a scan's time
+TIME_TOLERANCE = 0.05
 #: the columns a matches.csv must have
 MATCHES_COLUMNS = ("query", "match", "distance")
 _T_NAMES = [f"T{r}{c}" for r in range(3) for c in range(4)]
@@ -70,14 +72,29 @@ class LoopFile:
     #: the rule that picked the loops, for the record
     rule: str = ""
     extra: dict = field(default_factory=dict)
+    #: ``query``/``match`` are time stamps (s; the ``tum`` format), not ids
+    by_time: bool = False
+    #: g2o: the graph (vertex poses by id, odometry and loop edges with information)
+    graph: G2OGraph | None = None
 
     def __len__(self) -> int:
         return len(self.query)
 
-    def indices(self, frame_ids: np.ndarray | None, n_frames: int) -> tuple[np.ndarray,
-                                                                            np.ndarray]:
+    def indices(self, frame_ids: np.ndarray | None, n_frames: int, *,
+                times: np.ndarray | None = None, keyframes: Keyframes | None = None,
+                tolerance: float = TIME_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
         """``(query, match)`` as scan indices; an id that is no scan is an error naming
-        its line (``match -1``, a query without a match, stays -1)."""
+        its line (``match -1``, a query without a match, stays -1).
+
+        Time stamps (``tum``) and keyframes mapped by ``keyframes``
+        (:func:`read_keyframes`) are placed on the scan whose time (``times``)
+        is nearest, within ``tolerance`` seconds.
+        """
+        if self.by_time or keyframes is not None:
+            return (place(self.query, self.line, self.path, n_frames, frame_ids, times,
+                          keyframes, tolerance, self.by_time),
+                    place(self.match, self.line, self.path, n_frames, frame_ids, times,
+                          keyframes, tolerance, self.by_time, allow_missing=True))
         if frame_ids is None or np.array_equal(frame_ids, np.arange(n_frames)):
             lookup = None
         else:
@@ -151,6 +168,8 @@ def detect_format(path: Path, text: str) -> str:
     """The format a file's name and content say, or an error asking for ``--loops-format``."""
     if path.suffix.lower() == ".g2o":
         return "g2o"
+    if path.suffix.lower() == ".tum":
+        return "tum"
     records = list(_records(text))
     if not records:
         raise LirisError(path, "no loops in the file")
@@ -188,12 +207,38 @@ def read_loops(path: str | Path, fmt: str | None = None, *, index_base: int = 0,
         return _read_g2o(path, text, gap)
     if fmt == "matches":
         return _read_matches(path, text)
+    if fmt == "tum":
+        return _read_tum(path, text)
     return _read_columns(path, text, fmt, index_base if fmt == "pairs" else 0, similarity)
 
 
-def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
-    vertices: dict[int, int] = {}
-    edges = []
+@dataclass(frozen=True)
+class G2OGraph:
+    """A g2o file's 3-D records: vertex poses by id, edges ``(a, b, T, info)`` (``T`` the
+    pose of ``b`` in ``a``'s frame, ``info`` 6x6 in g2o's order x y z qx qy qz; the
+    identity when the edge has none), fixed ids, and the line of each vertex and edge."""
+
+    vertices: dict[int, np.ndarray]
+    edges: list[tuple[int, int, np.ndarray, np.ndarray]]
+    fixed: list[int]
+    vertex_lines: dict[int, int] = field(default_factory=dict)
+    edge_lines: list[int] = field(default_factory=list)
+
+
+def parse_g2o(path: str | Path, text: str | None = None, *, need_vertices: bool = False
+              ) -> G2OGraph:
+    """The one reader of g2o's ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` / ``FIX`` records.
+
+    An edge has 7 pose numbers and optionally the 21 upper-triangular entries of
+    its information matrix (rebuilt symmetric, must be positive definite). An
+    edge naming a vertex the file does not define is an error naming its line
+    (when the file defines vertices, or always with ``need_vertices``).
+    """
+    path = Path(path)
+    text = read_text(path, "g2o file") if text is None else text
+    vertices: dict[int, np.ndarray] = {}
+    vertex_lines: dict[int, int] = {}
+    edges, edge_lines, fixed = [], [], []
     for number, fields in _records(text):
         where = f"{path}:{number}"
         tag, rest = fields[0].upper(), fields[1:]
@@ -203,9 +248,9 @@ def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
             vid = _integer(rest[0], where, "vertex id")
             if vid in vertices:
                 raise LirisError(where, f"vertex {vid} given twice (first on line "
-                                        f"{vertices[vid]})")
-            _numbers(rest[1:], where, "vertex pose")
-            vertices[vid] = number
+                                        f"{vertex_lines[vid]})")
+            vertices[vid] = _pose(_numbers(rest[1:], where, "vertex pose"))
+            vertex_lines[vid] = number
         elif tag == "EDGE_SE3:QUAT":
             if len(rest) not in (9, 30):
                 raise LirisError(where, f"EDGE_SE3:QUAT needs 9 or 30 fields (ids, pose, "
@@ -215,19 +260,37 @@ def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
             values = _numbers(rest[2:], where, "edge")
             if a == b:
                 raise LirisError(where, f"edge {a}-{b} joins a vertex to itself")
-            edges.append((number, a, b, _pose(values[:7])))
+            info = np.eye(6)
+            if len(values) == 28:
+                info = np.zeros((6, 6))
+                info[np.triu_indices(6)] = values[7:]
+                info = info + np.triu(info, 1).T
+                if not np.isfinite(info).all() or np.linalg.eigvalsh(info).min() <= 0:
+                    raise LirisError(where, "information matrix is not positive definite")
+            edges.append((a, b, _pose(values[:7]), info))
+            edge_lines.append(number)
         elif tag == "FIX":
-            continue
+            fixed.extend(_integer(v, where, "fixed vertex id") for v in rest)
         else:
             raise LirisError(where, f"unknown record {fields[0]} (liris reads VERTEX_SE3:QUAT, "
                                     "EDGE_SE3:QUAT and FIX)")
+    if vertices or need_vertices:
+        for (a, b, _, _), number in zip(edges, edge_lines, strict=True):
+            for vid in (a, b):
+                if vid not in vertices:
+                    raise LirisError(f"{path}:{number}", f"edge {a}-{b} names a missing "
+                                                         f"vertex {vid} (the file does not "
+                                                         "define it)")
+    return G2OGraph(vertices, edges, fixed, vertex_lines, edge_lines)
+
+
+def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
+    graph = parse_g2o(path, text)
+    if not graph.edges:
+        raise LirisError(path, "no EDGE_SE3:QUAT records: not a pose graph with loops")
     query, match, pose, lines = [], [], [], []
     n_odometry = 0
-    for number, a, b, T in edges:
-        for vid in (a, b):
-            if vertices and vid not in vertices:
-                raise LirisError(f"{path}:{number}", f"edge {a}-{b} names vertex {vid}, "
-                                                     "which the file does not define")
+    for (a, b, T, _), number in zip(graph.edges, graph.edge_lines, strict=True):
         if abs(a - b) <= gap:
             n_odometry += 1
             continue
@@ -236,14 +299,12 @@ def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
         else:
             query.append(b), match.append(a), pose.append(_invert(T))
         lines.append(number)
-    if not edges:
-        raise LirisError(path, "no EDGE_SE3:QUAT records: not a pose graph with loops")
     return LoopFile(path, "g2o", np.array(query, dtype=np.int64),
                     np.array(match, dtype=np.int64), None,
                     np.array(pose).reshape(-1, 4, 4), np.array(lines, dtype=np.int64),
                     n_odometry_edges=n_odometry,
                     rule=f"g2o EDGE_SE3:QUAT with |a - b| > {gap} (vertex ids); the later "
-                         "vertex is the query")
+                         "vertex is the query", graph=graph)
 
 
 def _read_matches(path: Path, text: str) -> LoopFile:
@@ -327,3 +388,147 @@ def _read_columns(path: Path, text: str, fmt: str, base: int, similarity: bool) 
                     np.array(score, dtype=np.float64) if score else None,
                     np.array(pose).reshape(-1, 4, 4) if with_pose else None,
                     np.array(lines, dtype=np.int64), rule=rule)
+
+
+def _read_tum(path: Path, text: str) -> LoopFile:
+    """``t_query t_match [x y z qx qy qz qw]``: loops between time stamps (seconds)."""
+    records = list(_records(text))
+    if records and not is_number(records[0][1][0]):
+        records = records[1:]
+    if not records:
+        raise LirisError(path, "no loops in the file")
+    query, match, pose, lines = [], [], [], []
+    for number, fields in records:
+        where = f"{path}:{number}"
+        if len(fields) not in (2, 9):
+            raise LirisError(where, f"expected t_query t_match [x y z qx qy qz qw] (2 or 9 "
+                                    f"columns), got {len(fields)}")
+        values = _numbers(fields, where, "time pair")
+        if not (math.isfinite(values[0]) and math.isfinite(values[1])):
+            raise LirisError(where, "time stamps must be finite")
+        query.append(values[0]), match.append(values[1])
+        if len(fields) == 9:
+            pose.append(_pose(values[2:]))
+        lines.append(number)
+    if pose and len(pose) != len(query):
+        raise LirisError(path, "some lines carry a pose and others do not")
+    return LoopFile(path, "tum", np.array(query, dtype=np.float64),
+                    np.array(match, dtype=np.float64), None,
+                    np.array(pose).reshape(-1, 4, 4) if pose else None,
+                    np.array(lines, dtype=np.int64), by_time=True,
+                    rule="TUM-style time pairs: each stamp placed on the nearest scan time")
+
+
+@dataclass(frozen=True)
+class Keyframes:
+    """How a file's keyframe ids become scans: by each keyframe's time (``times``, one per
+    keyframe, keyframe ``k`` on line ``lines[k]``) or by an explicit ``keyframe -> scan``
+    map (``scans``)."""
+
+    path: Path
+    times: np.ndarray | None = None
+    lines: np.ndarray | None = None
+    scans: dict[int, int] | None = None
+
+    @property
+    def rule(self) -> str:
+        if self.times is not None:
+            return f"keyframe k at the scan nearest the k-th time of {self.path.name}"
+        return f"keyframe -> scan map {self.path.name}"
+
+
+def read_keyframes(times: str | Path | None = None, mapping: str | Path | None = None
+                   ) -> Keyframes | None:
+    """Keyframe times (one per line, or the first column of a TUM trajectory, as
+    SC-LIO-SAM's ``times.txt``) or a ``keyframe scan`` map file; None without either."""
+    if times is not None and mapping is not None:
+        raise LirisError("--loops-times/--loops-map", "give one way to place keyframes")
+    if times is None and mapping is None:
+        return None
+    path = Path(times if times is not None else mapping)
+    text = read_text(path, "keyframe file")
+    records = list(_records(text))
+    if records and not is_number(records[0][1][0]):
+        records = records[1:]
+    if not records:
+        raise LirisError(path, "no keyframes in the file")
+    if times is not None:
+        stamps = []
+        for number, fields in records:
+            value = _numbers(fields[:1], f"{path}:{number}", "keyframe time")[0]
+            if not math.isfinite(value):
+                raise LirisError(f"{path}:{number}", "keyframe time must be finite")
+            stamps.append(value)
+        return Keyframes(path, times=np.array(stamps),
+                         lines=np.array([n for n, _ in records], dtype=np.int64))
+    scans: dict[int, int] = {}
+    for number, fields in records:
+        where = f"{path}:{number}"
+        if len(fields) != 2:
+            raise LirisError(where, f"expected 'keyframe scan' (2 columns), got {len(fields)}")
+        k = _integer(fields[0], where, "keyframe")
+        if k in scans:
+            raise LirisError(where, f"keyframe {k} mapped twice")
+        scans[k] = _integer(fields[1], where, "scan")
+    return Keyframes(path, scans=scans)
+
+
+def nearest_scan(stamp: float, times: np.ndarray, tolerance: float) -> int | None:
+    """Index of the scan time nearest ``stamp`` (sorted ``times``), or None beyond
+    ``tolerance`` seconds."""
+    k = int(np.searchsorted(times, stamp))
+    best = None
+    for c in (k - 1, k):
+        if 0 <= c < len(times) and (best is None or abs(times[c] - stamp) <
+                                    abs(times[best] - stamp)):
+            best = c
+    if best is None or abs(times[best] - stamp) > tolerance:
+        return None
+    return best
+
+
+def place(values: np.ndarray, lines: np.ndarray, path: Path, n_frames: int,
+          frame_ids: np.ndarray | None, times: np.ndarray | None, keyframes: Keyframes | None,
+          tolerance: float = TIME_TOLERANCE, by_time: bool = False,
+          allow_missing: bool = False) -> np.ndarray:
+    """Scan index of each keyframe id or time stamp in ``values`` (``lines``: their lines
+    in ``path``); one that cannot be placed is an error naming the file and line."""
+    needs_times = by_time or (keyframes is not None and keyframes.times is not None)
+    if needs_times and times is None:
+        raise LirisError(path, "placing loops by time needs the sequence's scan times "
+                               "(times.txt or --times)")
+    ids = None if frame_ids is None else {int(v): k for k, v in enumerate(frame_ids)}
+    out = np.empty(len(values), dtype=np.int64)
+    for k, v in enumerate(values):
+        where = f"{path}:{lines[k]}"
+        if allow_missing and not by_time and int(v) == -1:
+            out[k] = -1
+            continue
+        if by_time:
+            stamp, what = float(v), f"time {float(v):.9g}"
+        elif keyframes.times is not None:
+            kf = int(v)
+            if not 0 <= kf < len(keyframes.times):
+                raise LirisError(where, f"keyframe {kf} has no time in {keyframes.path} "
+                                        f"({len(keyframes.times)} keyframes, 0..."
+                                        f"{len(keyframes.times) - 1})")
+            stamp = float(keyframes.times[kf])
+            what = (f"keyframe {kf} (time {stamp:.9g}, {keyframes.path}:"
+                    f"{keyframes.lines[kf]})")
+        else:
+            kf = int(v)
+            if kf not in keyframes.scans:
+                raise LirisError(where, f"keyframe {kf} is not in the map {keyframes.path}")
+            scan = keyframes.scans[kf]
+            hit = scan if ids is None else ids.get(scan)
+            if hit is None or not 0 <= hit < n_frames:
+                raise LirisError(where, f"keyframe {kf} maps to scan {scan}, which is not in "
+                                        f"the sequence ({n_frames} scans)")
+            out[k] = hit
+            continue
+        hit = nearest_scan(stamp, times, tolerance)
+        if hit is None:
+            raise LirisError(where, f"{what} matches no scan within {tolerance:g} s (scans "
+                                    f"span {times[0]:.9g}..{times[-1]:.9g} s)")
+        out[k] = hit
+    return out
