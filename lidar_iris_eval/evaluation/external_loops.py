@@ -42,10 +42,11 @@ loops with a full pose within 2 m and 5 deg.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +62,14 @@ from lidar_iris_eval.evaluation.ground_truth import (
 from lidar_iris_eval.evaluation.poses import pose_errors, relative_ground_truth
 from lidar_iris_eval.evaluation.protocol1 import Protocol1Result, score_protocol1, scoring_rules
 from lidar_iris_eval.evaluation.settings import Settings
-from lidar_iris_eval.io.loops import LoopFile, read_loops
+from lidar_iris_eval.io.loops import (
+    TIME_TOLERANCE,
+    Keyframes,
+    LoopFile,
+    place,
+    read_keyframes,
+    read_loops,
+)
 from lidar_iris_eval.matching.blocks import BestMatches
 
 #: registration recall thresholds of the loops' own poses (as for methods)
@@ -125,6 +133,8 @@ class LoopScore:
     rte_m: np.ndarray
     protocol1: Protocol1Result
     metrics: dict = field(default_factory=dict)
+    #: the pose-graph damage (g2o graphs with vertices; :mod:`.posegraph_damage`)
+    damage: Any = None
 
     def table(self) -> dict[str, np.ndarray]:
         """Columns of ``loops/<name>/loops.csv``: one row per loop of the file."""
@@ -157,16 +167,20 @@ def _per_query(query: np.ndarray, match: np.ndarray, score: np.ndarray | None,
 
 def score_loops(loops: LoopFile, positions: np.ndarray, settings: Settings, *,
                 lidar_poses: np.ndarray | None = None, frame_ids: np.ndarray | None = None,
-                times: np.ndarray | None = None, forward: np.ndarray | None = None
-                ) -> LoopScore:
+                times: np.ndarray | None = None, forward: np.ndarray | None = None,
+                scan_times: np.ndarray | None = None, keyframes: Keyframes | None = None,
+                tolerance: float = TIME_TOLERANCE) -> LoopScore:
     """Score one file's loops under ``settings`` (module docstring for every rule).
 
     ``positions`` are the sequence's ``(N, 3)`` translations in
     ``settings.pose_frame``; ``lidar_poses`` ``(N, 4, 4)`` its LiDAR-frame poses
-    (for the loops' pose errors); ``frame_ids`` map the file's ids to scans.
+    (for the loops' pose errors); ``frame_ids`` map the file's ids to scans, or
+    ``keyframes`` with the scans' ``scan_times`` (time stamps within ``tolerance`` s).
+    ``times`` are the scan times the convention's window in seconds uses.
     """
     n = len(positions)
-    query, match = loops.indices(frame_ids, n)
+    query, match = loops.indices(frame_ids, n, times=scan_times, keyframes=keyframes,
+                                 tolerance=tolerance)
     gt = ground_truth_for(positions, settings, times)
     limits = database_limits(n, settings, times) if gt.limits is None else gt.limits
     is_query = limits[query] >= 0
@@ -278,13 +292,23 @@ def source_names(paths: Sequence[str | os.PathLike]) -> list[str]:
 
 def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Settings | None = None,
                    *, formats: Sequence[str | None] | str | None = None, index_base: int = 0,
-                   gap: int = 1, similarity: bool = False) -> Evaluation:
+                   gap: int = 1, similarity: bool = False,
+                   keyframe_times: str | os.PathLike | None = None,
+                   keyframe_map: str | os.PathLike | None = None,
+                   time_tolerance: float = TIME_TOLERANCE, posegraph: bool | None = None,
+                   kernel: str = "none", kernel_k: float | None = None) -> Evaluation:
     """Score each loop file against ``sequence`` (a Sequence or a path) as one protocol 1 run.
 
     ``formats``: one format for all files, one per file, or None (detected).
     Returns an :class:`Evaluation` whose results are the files (``loops:<stem>``);
     :func:`lidar_iris_eval.runs.writer.write_run` writes it, and each result's
     ``loop_score`` attribute is its :class:`LoopScore` (see :func:`loop_scores`).
+
+    Keyframe ids are placed on scans by ``keyframe_times`` (one time per
+    keyframe) or ``keyframe_map`` (``keyframe scan`` lines), else they are
+    frame ids. ``posegraph``: optimise g2o graphs (True), never (False), or
+    when the file has vertices and gtsam is installed (None);
+    ``kernel``/``kernel_k`` the robust kernel of the loop edges.
     """
     settings = Settings() if settings is None else settings
     if isinstance(sequence, (str, os.PathLike)):
@@ -302,14 +326,21 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
     if pose_frame != settings.pose_frame:
         settings = settings.replace(pose_frame=pose_frame)
     positions = sequence.positions(pose_frame)
-    times = getattr(sequence, "times", None) if settings.exclude_seconds is not None else None
+    scan_times = getattr(sequence, "times", None)
+    times = scan_times if settings.exclude_seconds is not None else None
+    keyframes = read_keyframes(keyframe_times, keyframe_map)
     started = time.perf_counter()
     results = []
     for path, fmt, name in zip(paths, formats, source_names(paths), strict=True):
         loops = read_loops(path, fmt, index_base=index_base, gap=gap, similarity=similarity)
         scored = score_loops(loops, positions, settings, lidar_poses=sequence.poses,
                              frame_ids=getattr(sequence, "frame_ids", None), times=times,
-                             forward=sequence.poses[:, :3, 0])
+                             forward=sequence.poses[:, :3, 0], scan_times=scan_times,
+                             keyframes=keyframes, tolerance=time_tolerance)
+        damage = _damage(loops, scored, sequence, scan_times, keyframes, time_tolerance,
+                         posegraph, kernel, kernel_k)
+        if damage is not None:
+            scored = replace(scored, damage=damage)
         digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
         source = LoopSource(name, LoopParams(str(Path(path).resolve()), loops.format, digest,
                                              loops.rule, index_base, gap,
@@ -318,6 +349,10 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
         rows = _rows(source, db, scored.protocol1, None, settings)
         rows[0]["match_ms_per_query"] = None  # computed elsewhere
         rows[0].update(scored.metrics)
+        if keyframes is not None:
+            rows[0]["loops_keyframes"] = keyframes.rule
+        if damage is not None:
+            rows[0].update(damage.summary())
         results.append(LoopResult(source, db, scored.protocol1, None, rows, loop_score=scored))
     return Evaluation(sequence, settings, (1,), pose_frame, results,
                       time.perf_counter() - started)
@@ -329,8 +364,46 @@ class LoopResult(DescriptorResult):
 
     loop_score: LoopScore | None = None
 
+    def extra_files(self) -> dict[str, dict]:
+        """Run-folder tables of this source: ``loops/<name>/loops.csv`` (every loop) and,
+        for a pose graph, ``loops/<name>/posegraph.csv`` (the APE table)."""
+        if self.loop_score is None:
+            return {}
+        base = f"loops/{self.descriptor.name}"
+        out = {f"{base}/loops.csv": self.loop_score.table()}
+        if self.loop_score.damage is not None:
+            out[f"{base}/posegraph.csv"] = self.loop_score.damage.table()
+        return out
+
 
 def loop_scores(evaluation: Evaluation) -> dict[str, LoopScore]:
     """``{name: LoopScore}`` of the loop sources of an evaluation."""
     return {r.descriptor.name: r.loop_score for r in evaluation.results
             if getattr(r, "loop_score", None) is not None}
+
+
+def _damage(loops: LoopFile, scored: LoopScore, sequence, scan_times, keyframes, tolerance,
+            posegraph: bool | None, kernel: str, kernel_k: float | None):
+    """The pose-graph damage of a g2o file with vertices, or None (module docstring)."""
+    graph = loops.graph
+    usable = (graph is not None and bool(graph.vertices) and len(loops) > 0
+              and loops.n_odometry_edges > 0)
+    if posegraph is False or (posegraph is None and not usable):
+        return None
+    if not usable:
+        raise LirisError(loops.path, "pose-graph damage needs a g2o pose graph with vertices, "
+                                     "odometry edges and loop edges")
+    if posegraph is None and importlib.util.find_spec("gtsam") is None:
+        warn(loops.path, "gtsam is not installed: no pose-graph damage (pip install "
+                         "'lidar-iris-eval[posegraph]')")
+        return None
+    from lidar_iris_eval.evaluation.posegraph_damage import KERNEL_K, posegraph_damage
+
+    ids = np.array(sorted(graph.vertices), dtype=np.int64)
+    lines = np.array([graph.vertex_lines[v] for v in ids], dtype=np.int64)
+    scans = place(ids, lines, loops.path, len(sequence), getattr(sequence, "frame_ids", None),
+                  scan_times, keyframes, tolerance)
+    return posegraph_damage(graph, loops.extra["edge_index"], scored.status,
+                            dict(zip(ids.tolist(), scans.tolist(), strict=True)),
+                            sequence.poses[:, :3, 3], kernel=kernel,
+                            kernel_k=KERNEL_K if kernel_k is None else kernel_k)

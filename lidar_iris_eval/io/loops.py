@@ -90,33 +90,10 @@ class LoopFile:
         (:func:`read_keyframes`) are placed on the scan whose time (``times``)
         is nearest, within ``tolerance`` seconds.
         """
-        if self.by_time or keyframes is not None:
-            return (place(self.query, self.line, self.path, n_frames, frame_ids, times,
-                          keyframes, tolerance, self.by_time),
-                    place(self.match, self.line, self.path, n_frames, frame_ids, times,
-                          keyframes, tolerance, self.by_time, allow_missing=True))
-        if frame_ids is None or np.array_equal(frame_ids, np.arange(n_frames)):
-            lookup = None
-        else:
-            lookup = {int(v): k for k, v in enumerate(np.asarray(frame_ids))}
-        out = []
-        for values, allow_missing in ((self.query, False), (self.match, True)):
-            idx = np.empty(len(values), dtype=np.int64)
-            for k, v in enumerate(values):
-                v = int(v)
-                if allow_missing and v == -1:
-                    idx[k] = -1
-                    continue
-                hit = (v if 0 <= v < n_frames else None) if lookup is None else lookup.get(v)
-                if hit is None:
-                    what = "frame" if lookup is None else "frame id"
-                    raise LirisError(f"{self.path}:{self.line[k]}",
-                                     f"{what} {v} is not in the sequence ({n_frames} scans"
-                                     + (", ids from the scan file names" if lookup else
-                                        f", indices 0..{n_frames - 1}") + ")")
-                idx[k] = hit
-            out.append(idx)
-        return out[0], out[1]
+        return (place(self.query, self.line, self.path, n_frames, frame_ids, times,
+                      keyframes, tolerance, self.by_time),
+                place(self.match, self.line, self.path, n_frames, frame_ids, times,
+                      keyframes, tolerance, self.by_time, allow_missing=True))
 
 
 def _pose(values: list[float]) -> np.ndarray:
@@ -288,12 +265,14 @@ def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
     graph = parse_g2o(path, text)
     if not graph.edges:
         raise LirisError(path, "no EDGE_SE3:QUAT records: not a pose graph with loops")
-    query, match, pose, lines = [], [], [], []
+    query, match, pose, lines, edge_index = [], [], [], [], []
     n_odometry = 0
-    for (a, b, T, _), number in zip(graph.edges, graph.edge_lines, strict=True):
+    for e, ((a, b, T, _), number) in enumerate(zip(graph.edges, graph.edge_lines,
+                                                   strict=True)):
         if abs(a - b) <= gap:
             n_odometry += 1
             continue
+        edge_index.append(e)
         if a > b:  # T: pose of b (the earlier frame) in a's (the query's) frame
             query.append(a), match.append(b), pose.append(T)
         else:
@@ -304,7 +283,8 @@ def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
                     np.array(pose).reshape(-1, 4, 4), np.array(lines, dtype=np.int64),
                     n_odometry_edges=n_odometry,
                     rule=f"g2o EDGE_SE3:QUAT with |a - b| > {gap} (vertex ids); the later "
-                         "vertex is the query", graph=graph)
+                         "vertex is the query", graph=graph,
+                    extra={"edge_index": np.array(edge_index, dtype=np.int64)})
 
 
 def _read_matches(path: Path, text: str) -> LoopFile:
@@ -497,12 +477,27 @@ def place(values: np.ndarray, lines: np.ndarray, path: Path, n_frames: int,
     if needs_times and times is None:
         raise LirisError(path, "placing loops by time needs the sequence's scan times "
                                "(times.txt or --times)")
-    ids = None if frame_ids is None else {int(v): k for k, v in enumerate(frame_ids)}
+    if frame_ids is None or np.array_equal(frame_ids, np.arange(n_frames)):
+        ids = None
+    else:
+        ids = {int(v): k for k, v in enumerate(np.asarray(frame_ids))}
+    order = np.argsort(times, kind="stable") if needs_times else None
+    sorted_times = times[order] if needs_times else None
     out = np.empty(len(values), dtype=np.int64)
     for k, v in enumerate(values):
         where = f"{path}:{lines[k]}"
         if allow_missing and not by_time and int(v) == -1:
             out[k] = -1
+            continue
+        if not by_time and keyframes is None:  # frame ids (or indices)
+            v = int(v)
+            hit = (v if 0 <= v < n_frames else None) if ids is None else ids.get(v)
+            if hit is None:
+                raise LirisError(where, f"{'frame' if ids is None else 'frame id'} {v} is not "
+                                        f"in the sequence ({n_frames} scans"
+                                        + (", ids from the scan file names" if ids else
+                                           f", indices 0..{n_frames - 1}") + ")")
+            out[k] = hit
             continue
         if by_time:
             stamp, what = float(v), f"time {float(v):.9g}"
@@ -526,9 +521,9 @@ def place(values: np.ndarray, lines: np.ndarray, path: Path, n_frames: int,
                                         f"the sequence ({n_frames} scans)")
             out[k] = hit
             continue
-        hit = nearest_scan(stamp, times, tolerance)
+        hit = nearest_scan(stamp, sorted_times, tolerance)
         if hit is None:
             raise LirisError(where, f"{what} matches no scan within {tolerance:g} s (scans "
-                                    f"span {times[0]:.9g}..{times[-1]:.9g} s)")
-        out[k] = hit
+                                    f"span {sorted_times[0]:.9g}..{sorted_times[-1]:.9g} s)")
+        out[k] = order[hit]
     return out
