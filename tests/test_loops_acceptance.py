@@ -95,6 +95,17 @@ def world(tmp_path_factory):
     (root / "pairs.txt").write_text("".join(f"{keys[a] + 1} {keys[b] + 1}\n" for a, b in loops))
     (root / "loops.tum").write_text("# t_query t_match\n" + "".join(
         f"{times[keys[a]]:.3f} {times[keys[b]]:.3f}\n" for a, b in loops))
+    # MapClosures: keyframe k as local map k (scans keys[k]..keys[k]+1, its frame the first)
+    rel = {(a, b): np.linalg.inv(P[keys[a]]) @ P[keys[b]] for a, b in loops}
+    (root / "mc").mkdir()
+    (root / "mc" / "map_closures.txt").write_text("".join(
+        f"{b} {a} {keys[b]} {keys[a]} " + " ".join(f"{v:.9g}" for v in rel[a, b].ravel()) + "\n"
+        for a, b in loops))
+    (root / "closures18.txt").write_text("".join(
+        f"{b} {a} " + " ".join(f"{v:.9g}" for v in rel[a, b].ravel()) + "\n"
+        for a, b in loops))
+    (root / "maps.txt").write_text("# map first_scan last_scan\n" + "".join(
+        f"{k} {s} {s + KEY_EVERY - 1}\n" for k, s in enumerate(keys)))
     covered = np.zeros(n, dtype=bool)
     covered[[keys[a] for a, _ in true_loops]] = True
     expected = {"coverage": np.count_nonzero(covered & revisit) / np.count_nonzero(revisit),
@@ -116,10 +127,13 @@ def _eval(root, out, capsys, *args):
     ("g2o", ["--loops-times", "kf_times.txt"]),
     ("tum", []),
     ("pairs", ["--loops-index-base", "1"]),
+    ("mapclosures", []),
+    ("mapclosures18", ["--loops-map", "maps.txt"]),
 ])
 def test_each_format_gives_20_tp_3_fp_and_the_coverage(world, tmp_path, capsys, name, args):
     root, expected = world
-    file = {"g2o": "graph.g2o", "tum": "loops.tum", "pairs": "pairs.txt"}[name]
+    file = {"g2o": "graph.g2o", "tum": "loops.tum", "pairs": "pairs.txt",
+            "mapclosures": "mc/map_closures.txt", "mapclosures18": "closures18.txt"}[name]
     args = [a if not a.endswith(".txt") else str(root / a) for a in args]
     rows, text = _eval(root, tmp_path / "run", capsys, "--loops", root / file, "--no-posegraph",
                        *args)

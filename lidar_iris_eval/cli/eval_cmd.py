@@ -74,7 +74,7 @@ register_flags({
               help="Score this file's loops (g2o, matches.csv, pair list; docs/loops.md) "
                    "instead of a descriptor; may be repeated.")
 @click.option("--loops-format",
-              type=click.Choice(["g2o", "matches", "liris-txt", "pairs", "tum"]),
+              type=click.Choice(["g2o", "matches", "liris-txt", "pairs", "tum", "mapclosures"]),
               default=None, help="Format of every --loops file [default: detected].")
 @click.option("--loops-index-base", type=click.IntRange(0, 1), default=0, show_default=True,
               help="Pair lists: 0- or 1-based frame indices.")

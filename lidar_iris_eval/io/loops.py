@@ -40,7 +40,7 @@ import numpy as np
 from lidar_iris_eval.errors import LirisError, read_text
 from lidar_iris_eval.io.poses import is_number, quaternion_to_matrix
 
-LOOP_FORMATS = ("g2o", "matches", "liris-txt", "pairs", "tum")
+LOOP_FORMATS = ("g2o", "matches", "liris-txt", "pairs", "tum", "mapclosures")
 #: default tolerance (s) of a time stamp matched to a scan's time
 TIME_TOLERANCE = 0.05
 #: the columns a matches.csv must have
@@ -90,6 +90,9 @@ class LoopFile:
         (:func:`read_keyframes`) are placed on the scan whose time (``times``)
         is nearest, within ``tolerance`` seconds.
         """
+        if self.extra.get("map_ids") and keyframes is None:
+            raise LirisError(self.path, "MapClosures local-map ids need the maps' scans: "
+                                        "--loops-map FILE ('map first_scan [last_scan]' lines)")
         return (place(self.query, self.line, self.path, n_frames, frame_ids, times,
                       keyframes, tolerance, self.by_time),
                 place(self.match, self.line, self.path, n_frames, frame_ids, times,
@@ -147,10 +150,14 @@ def detect_format(path: Path, text: str) -> str:
         return "g2o"
     if path.suffix.lower() == ".tum":
         return "tum"
+    if path.name.lower() == "map_closures.txt":
+        return "mapclosures"
     records = list(_records(text))
     if not records:
         raise LirisError(path, "no loops in the file")
     first = records[0][1]
+    if all(len(f) in (18, 20) and all(map(is_number, f)) for _, f in records):
+        return "mapclosures"
     if first[0].upper().startswith(("VERTEX_", "EDGE_")):
         return "g2o"
     header = [f.strip().lower() for f in first]
@@ -186,6 +193,8 @@ def read_loops(path: str | Path, fmt: str | None = None, *, index_base: int = 0,
         return _read_matches(path, text)
     if fmt == "tum":
         return _read_tum(path, text)
+    if fmt == "mapclosures":
+        return _read_mapclosures(path, text)
     return _read_columns(path, text, fmt, index_base if fmt == "pairs" else 0, similarity)
 
 
@@ -444,8 +453,9 @@ def read_keyframes(times: str | Path | None = None, mapping: str | Path | None =
     scans: dict[int, int] = {}
     for number, fields in records:
         where = f"{path}:{number}"
-        if len(fields) != 2:
-            raise LirisError(where, f"expected 'keyframe scan' (2 columns), got {len(fields)}")
+        if len(fields) not in (2, 3):  # 3: a local map's scan range (its frame: the first)
+            raise LirisError(where, f"expected 'keyframe scan' or 'map first_scan last_scan' "
+                                    f"(2 or 3 columns), got {len(fields)}")
         k = _integer(fields[0], where, "keyframe")
         if k in scans:
             raise LirisError(where, f"keyframe {k} mapped twice")
@@ -527,3 +537,42 @@ def place(values: np.ndarray, lines: np.ndarray, path: Path, n_frames: int,
                                     f"span {sorted_times[0]:.9g}..{sorted_times[-1]:.9g} s)")
         out[k] = order[hit]
     return out
+
+
+def _read_mapclosures(path: Path, text: str) -> LoopFile:
+    """MapClosures' ``map_closures.txt``: per closure ``reference_map query_map`` and the
+    4x4 pose (18 numbers), or ``reference_map query_map reference_first_scan
+    query_first_scan`` and the pose (20, the pipeline of map_closures >= 2). A local map
+    is placed on its first scan (the map's frame): from the file's scan columns, or from
+    ``--loops-map`` (``map first_scan [last_scan]``) when the file has map ids only."""
+    records = list(_records(text))
+    if not records:
+        raise LirisError(path, "no loops in the file")
+    width = len(records[0][1])
+    query, match, pose, lines = [], [], [], []
+    for number, fields in records:
+        where = f"{path}:{number}"
+        if len(fields) != width or width not in (18, 20):
+            raise LirisError(where, f"expected 18 (maps + 4x4 pose) or 20 (maps, first scans "
+                                    f"+ 4x4 pose) columns like the first line ({width}), got "
+                                    f"{len(fields)}")
+        values = _numbers(fields, where, "closure")
+        q_col, m_col = (3, 2) if width == 20 else (1, 0)
+        q = _integer(fields[q_col], where, "query")
+        m = _integer(fields[m_col], where, "reference")
+        if q == m:
+            raise LirisError(where, f"closure joins map {q} to itself")
+        T = np.reshape(values[width - 16:], (4, 4))
+        # the pose is the reference map's in the query map's frame (liris's convention; see
+        # descriptors/mapclosures): keep it as is, later frame as the query
+        if q < m:
+            q, m, T = m, q, _invert(T)
+        query.append(q), match.append(m), pose.append(T)
+        lines.append(number)
+    return LoopFile(path, "mapclosures", np.array(query, dtype=np.int64),
+                    np.array(match, dtype=np.int64), None, np.array(pose).reshape(-1, 4, 4),
+                    np.array(lines, dtype=np.int64),
+                    rule="MapClosures closures between local maps, each map at its first scan"
+                         + (" (scan columns of the file)" if width == 20 else
+                            " (--loops-map)"),
+                    extra={"map_ids": width == 18})
