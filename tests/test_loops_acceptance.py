@@ -211,3 +211,41 @@ def test_unplaceable_keyframe_and_time(world, tmp_path, capsys):
     code, _, err = run_cli(["eval", "--poses", root / "poses.txt", "--times", root / "times.txt",
                             "--loops", bad, "--out", tmp_path / "b"], capsys)
     assert_one_line_error(code, err, "late.tum:2", "matches no scan")
+
+
+def _by_gid(fig, gid):
+    for ax in fig.axes:
+        for artist in [*ax.collections, *ax.patches, *ax.lines]:
+            if artist.get_gid() == gid:
+                yield artist
+
+
+def test_figures_draw_each_loop_and_the_ape_bars(world, tmp_path, capsys):
+    pytest.importorskip("gtsam")
+    from lidar_iris_eval.plotting.figures import build_loops
+    from lidar_iris_eval.runs.reader import load_run
+
+    root, expected = world
+    out = tmp_path / "run"
+    _eval(root, out, capsys, "--loops", root / "graph.g2o", "--loops-times",
+          root / "kf_times.txt")
+    trajectory, bars = build_loops(load_run(out))
+    P = np.loadtxt(root / "poses.txt").reshape(-1, 3, 4)[:, :2, 3]  # LiDAR frame: x, y
+    (true,) = _by_gid(trajectory, "loops-true:loops:graph")
+    (false,) = _by_gid(trajectory, "loops-false:loops:graph")
+    assert len(true.get_segments()) == 20
+    drawn = sorted(tuple(np.round(s.ravel(), 6)) for s in false.get_segments())
+    wanted = sorted(tuple(np.round(np.r_[P[q], P[m]], 6)) for q, m in expected["false_scans"])
+    assert drawn == wanted
+    heights = [p.get_height() for p in _by_gid(bars, "ape:loops:graph")]
+    table = pd.read_csv(out / "loops" / "loops:graph" / "posegraph.csv")
+    assert heights == pytest.approx(table.ape_rmse_m[:3].tolist())
+    assert len(list(_by_gid(bars, "added:loops:graph"))) == 3
+    code, stdout, err = run_cli(["plot", out], capsys)
+    assert code == 0, err
+    assert (out / "figures" / "loops_trajectory.png").is_file()
+    assert (out / "figures" / "posegraph_ape.png").is_file()
+    pytest.importorskip("plotly")
+    code, _, err = run_cli(["report", out], capsys)
+    assert code == 0, err
+    assert "id='loops'" in (out / "report" / "index.html").read_text()
