@@ -109,7 +109,8 @@ def world(tmp_path_factory):
     covered = np.zeros(n, dtype=bool)
     covered[[keys[a] for a, _ in true_loops]] = True
     expected = {"coverage": np.count_nonzero(covered & revisit) / np.count_nonzero(revisit),
-                "n_revisits": int(np.count_nonzero(revisit)),
+                "n_revisits": int(np.count_nonzero(revisit)), "revisit": revisit,
+                "true_queries": [int(keys[a]) for a, _ in true_loops],
                 "false_scans": [(int(keys[a]), int(keys[b])) for a, b in false_loops]}
     return root, expected
 
@@ -147,6 +148,30 @@ def test_each_format_gives_20_tp_3_fp_and_the_coverage(world, tmp_path, capsys, 
                        table[table.status == "false"]["match"], strict=True))
     assert false == sorted(expected["false_scans"])
     assert "20 TP / 3 FP" in text
+
+
+def test_coverage_within_a_frame_tolerance_and_stretches(world, tmp_path, capsys):
+    root, expected = world
+    revisit, queries, tol = expected["revisit"], expected["true_queries"], 3
+    near = np.array([any(abs(f - q) <= tol for q in queries) for f in range(len(revisit))])
+    stretches, start = [], None  # maximal runs of revisit frames, by a plain loop
+    for f, r in enumerate([*revisit, False]):
+        if r and start is None:
+            start = f
+        if not r and start is not None:
+            stretches.append((start, f - 1))
+            start = None
+    touched = sum(near[a:b + 1].any() for a, b in stretches)
+    rows, _ = _eval(root, tmp_path / "run", capsys, "--loops", root / "pairs.txt",
+                    "--loops-index-base", "1", "--loops-coverage-tolerance", str(tol))
+    row = rows[0]
+    assert row["revisit_coverage"] == pytest.approx(
+        np.count_nonzero(near & revisit) / np.count_nonzero(revisit), abs=1e-12)
+    assert row["revisit_coverage"] > expected["coverage"]
+    assert (row["n_revisit_stretches"], row["n_revisit_stretches_covered"]) == \
+        (len(stretches), touched)
+    print("coverage tol 3:", row["revisit_coverage"], "stretches", touched, "of",
+          len(stretches))
 
 
 #: APE RMSE (m) measured on this graph (gtsam 4.2, LM, no kernel): none / true only / all

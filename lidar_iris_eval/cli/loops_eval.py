@@ -30,6 +30,9 @@ def loops_options(func):
                   help="Keyframe -> scan map of the --loops files: 'keyframe scan' lines.")
     @click.option("--loops-time-tolerance", type=click.FloatRange(min=0), default=0.05,
                   show_default=True, help="Seconds between a loop's time stamp and its scan.")
+    @click.option("--loops-coverage-tolerance", type=click.IntRange(min=0), default=0,
+                  show_default=True,
+                  help="Frames: a true loop covers the revisit frames this close to its query.")
     @click.option("--posegraph/--no-posegraph", default=None,
                   help="Optimise g2o graphs with all / true / no loops and report the APE "
                        "(gtsam) [default: when the graph has vertices and gtsam is installed].")
@@ -44,6 +47,7 @@ def loops_options(func):
             "keyframe_times": kwargs.pop("loops_times"),
             "keyframe_map": kwargs.pop("loops_map"),
             "time_tolerance": kwargs.pop("loops_time_tolerance"),
+            "coverage_tolerance": kwargs.pop("loops_coverage_tolerance"),
             "posegraph": kwargs.pop("posegraph"),
             "kernel": kwargs.pop("posegraph_kernel"),
             "kernel_k": kwargs.pop("posegraph_kernel_k"),
@@ -98,7 +102,9 @@ def evaluate_loops_cli(seq, loop_paths, loop_format, index_base, gap, settings, 
         coverage = row["revisit_coverage"]
         click.echo(f"{row['descriptor']}: {row['n_loops']} loops, {row['loops_tp']} TP / "
                    f"{row['loops_fp']} FP, revisit coverage "
-                   f"{f'{coverage:.4f}' if coverage is not None else 'n/a'}; results in {out}",
+                   f"{f'{coverage:.4f}' if coverage is not None else 'n/a'} of revisit "
+                   f"queries, {row['n_revisit_stretches_covered']} of "
+                   f"{row['n_revisit_stretches']} revisit stretches; results in {out}",
                    err=err)
     for name, score in loop_scores(run).items():
         if score.damage is not None:

@@ -169,7 +169,7 @@ def score_loops(loops: LoopFile, positions: np.ndarray, settings: Settings, *,
                 lidar_poses: np.ndarray | None = None, frame_ids: np.ndarray | None = None,
                 times: np.ndarray | None = None, forward: np.ndarray | None = None,
                 scan_times: np.ndarray | None = None, keyframes: Keyframes | None = None,
-                tolerance: float = TIME_TOLERANCE) -> LoopScore:
+                tolerance: float = TIME_TOLERANCE, coverage_tolerance: int = 0) -> LoopScore:
     """Score one file's loops under ``settings`` (module docstring for every rule).
 
     ``positions`` are the sequence's ``(N, 3)`` translations in
@@ -177,6 +177,8 @@ def score_loops(loops: LoopFile, positions: np.ndarray, settings: Settings, *,
     (for the loops' pose errors); ``frame_ids`` map the file's ids to scans, or
     ``keyframes`` with the scans' ``scan_times`` (time stamps within ``tolerance`` s).
     ``times`` are the scan times the convention's window in seconds uses.
+    ``coverage_tolerance`` (frames): a true loop's query covers the revisit
+    frames within that many frames of it (:func:`coverage`).
     """
     n = len(positions)
     query, match = loops.indices(frame_ids, n, times=scan_times, keyframes=keyframes,
@@ -229,7 +231,40 @@ def score_loops(loops: LoopFile, positions: np.ndarray, settings: Settings, *,
                                          relative_ground_truth(lidar_poses, query[has],
                                                                match[has]))
     metrics = _set_metrics(loops, query, usable, true, gt, settings, rre, rte)
+    metrics.update(coverage(query[true], gt.revisit, coverage_tolerance))
     return LoopScore(loops, query, match, status.astype(str), dist_m, rre, rte, p1, metrics)
+
+
+def revisit_stretches(revisit: np.ndarray) -> np.ndarray:
+    """``(S, 2)`` first and last frame of each maximal run of consecutive revisit frames."""
+    r = np.r_[False, np.asarray(revisit, dtype=bool), False].astype(np.int8)
+    d = np.diff(r)
+    return np.c_[np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1]
+
+
+def coverage(true_queries: np.ndarray, revisit: np.ndarray, tolerance: int = 0) -> dict:
+    """Revisit coverage of the true loops' queries, within ``tolerance`` frames.
+
+    ``revisit_coverage``: revisit frames with a true loop's query within
+    ``tolerance`` frames / revisit frames; ``revisit_stretch_coverage``: revisit
+    stretches (maximal runs of consecutive revisit frames) that hold such a frame /
+    stretches. ``tolerance`` 0: the query itself.
+    """
+    revisit = np.asarray(revisit, dtype=bool)
+    n = len(revisit)
+    mark = np.zeros(n + 1, dtype=np.int64)
+    for q in np.unique(np.asarray(true_queries, dtype=np.int64)):
+        mark[max(q - tolerance, 0)] += 1
+        mark[min(q + tolerance + 1, n)] -= 1
+    near = np.cumsum(mark[:n]) > 0
+    stretches = revisit_stretches(revisit)
+    touched = [bool(near[a:b + 1].any()) for a, b in stretches]
+    return {"revisit_coverage": _ratio(int(np.count_nonzero(near & revisit)),
+                                       int(np.count_nonzero(revisit))),
+            "revisit_stretch_coverage": _ratio(sum(touched), len(stretches)),
+            "n_revisit_stretches": int(len(stretches)),
+            "n_revisit_stretches_covered": int(sum(touched)),
+            "coverage_tolerance_frames": int(tolerance)}
 
 
 def _ratio(a: float, b: float) -> float | None:
@@ -296,7 +331,8 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
                    keyframe_times: str | os.PathLike | None = None,
                    keyframe_map: str | os.PathLike | None = None,
                    time_tolerance: float = TIME_TOLERANCE, posegraph: bool | None = None,
-                   kernel: str = "none", kernel_k: float | None = None) -> Evaluation:
+                   kernel: str = "none", kernel_k: float | None = None,
+                   coverage_tolerance: int = 0) -> Evaluation:
     """Score each loop file against ``sequence`` (a Sequence or a path) as one protocol 1 run.
 
     ``formats``: one format for all files, one per file, or None (detected).
@@ -336,7 +372,8 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
         scored = score_loops(loops, positions, settings, lidar_poses=sequence.poses,
                              frame_ids=getattr(sequence, "frame_ids", None), times=times,
                              forward=sequence.poses[:, :3, 0], scan_times=scan_times,
-                             keyframes=keyframes, tolerance=time_tolerance)
+                             keyframes=keyframes, tolerance=time_tolerance,
+                             coverage_tolerance=coverage_tolerance)
         damage = _damage(loops, scored, sequence, scan_times, keyframes, time_tolerance,
                          posegraph, kernel, kernel_k)
         if damage is not None:
