@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, warn
-from lidar_iris_eval.evaluation.evaluate import DescriptorResult, Evaluation, _rows
+from lidar_iris_eval.evaluation.evaluate import DescriptorResult, Evaluation, result_rows
 from lidar_iris_eval.evaluation.ground_truth import (
     database_limits,
     ground_truth_for,
@@ -383,7 +383,7 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
                                              loops.rule, index_base, gap,
                                              loops.score is not None))
         db = NoDescriptors(np.full(len(sequence), np.nan))
-        rows = _rows(source, db, scored.protocol1, None, settings)
+        rows = result_rows(source, db, scored.protocol1, None, settings)
         rows[0]["match_ms_per_query"] = None  # computed elsewhere
         rows[0].update(scored.metrics)
         if keyframes is not None:
