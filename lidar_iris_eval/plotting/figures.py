@@ -243,7 +243,8 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
         "pr2": build_pr(run, 2),
         "affinity": build_affinity(run),
         "trajectory": build_trajectory(run),
-        "timing": build_timing(run),
+        # a --loops run extracted and matched nothing: no timing to show
+        "timing": None if run.loop_tables("loops") else build_timing(run),
     }
     # only for a run that scored LiDAR Iris: a GOSMatch or ESM run's figures must not
     # show another method's internals as if they were its own
