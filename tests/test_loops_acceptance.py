@@ -106,6 +106,19 @@ def world(tmp_path_factory):
         for a, b in loops))
     (root / "maps.txt").write_text("# map first_scan last_scan\n" + "".join(
         f"{k} {s} {s + KEY_EVERY - 1}\n" for k, s in enumerate(keys)))
+    # per-scan drifting odometry (KITTI file) + a posed pair list of the same loops, by scan
+    steps = [np.linalg.inv(P[k]) @ P[k + 1] @ _yaw(0.002 + rng.normal(0, 0.001))
+             for k in range(n - 1)]
+    odo_scan = [P[0]]
+    for o in steps:
+        odo_scan.append(odo_scan[-1] @ o)
+    odo_scan = np.array(odo_scan)
+    np.savetxt(root / "odometry.txt", odo_scan[:, :3, :4].reshape(n, 12), fmt="%.9f")
+    offset = np.eye(4)
+    offset[0, 3] = 0.5
+    (root / "posed_pairs.txt").write_text("".join(
+        f"{keys[a]} {keys[b]} 0 " + _pose_text(rel[a, b] if (a, b) in true_loops else offset)
+        + "\n" for a, b in loops))
     covered = np.zeros(n, dtype=bool)
     covered[[keys[a] for a, _ in true_loops]] = True
     expected = {"coverage": np.count_nonzero(covered & revisit) / np.count_nonzero(revisit),
@@ -209,6 +222,27 @@ def test_posegraph_damage_true_loops_beat_none_and_all(world, tmp_path, capsys):
     singles = table[table.graph.str.startswith("true+")]
     assert len(singles) == 3 and (singles.added_m > 0).all()
     assert "APE RMSE" in text
+
+
+#: APE RMSE (m) of the --loops-odometry graph (per-scan drift, equal edge weights)
+PINNED_ODOMETRY = {"none": 1.4043, "true": 0.01611, "all": 11.012}
+
+
+def test_posegraph_from_an_odometry_and_posed_pairs(world, tmp_path, capsys):
+    pytest.importorskip("gtsam")
+    root, _ = world
+    rows, text = _eval(root, tmp_path / "run", capsys, "--loops", root / "posed_pairs.txt",
+                       "--loops-odometry", root / "odometry.txt")
+    row = rows[0]
+    assert (row["loops_tp"], row["loops_fp"]) == (20, 3)
+    none, true, every = (row[f"posegraph_ape_{k}_m"] for k in ("none", "true", "all"))
+    print("odometry graph APE none/true/all", none, true, every)
+    assert true < none and true < every
+    P = np.loadtxt(root / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
+    odo = np.loadtxt(root / "odometry.txt").reshape(-1, 3, 4)[:, :, 3]
+    assert none == pytest.approx(_kabsch_ape(odo, P), rel=1e-4)
+    for key, value in (("none", none), ("true", true), ("all", every)):
+        assert value == pytest.approx(PINNED_ODOMETRY[key], rel=0.02), key
 
 
 def test_robust_kernel_limits_the_damage(world, tmp_path, capsys):

@@ -33,6 +33,9 @@ def loops_options(func):
     @click.option("--loops-coverage-tolerance", type=click.IntRange(min=0), default=0,
                   show_default=True,
                   help="Frames: a true loop covers the revisit frames this close to its query.")
+    @click.option("--loops-odometry", type=click.Path(dir_okay=False), default=None,
+                  help="An odometry (KITTI or TUM, one LiDAR pose per scan) to build the "
+                       "pose graph of files whose loops carry poses.")
     @click.option("--posegraph/--no-posegraph", default=None,
                   help="Optimise g2o graphs with all / true / no loops and report the APE "
                        "(gtsam) [default: when the graph has vertices and gtsam is installed].")
@@ -49,6 +52,7 @@ def loops_options(func):
             "time_tolerance": kwargs.pop("loops_time_tolerance"),
             "coverage_tolerance": kwargs.pop("loops_coverage_tolerance"),
             "posegraph": kwargs.pop("posegraph"),
+            "odometry": kwargs.pop("loops_odometry"),
             "kernel": kwargs.pop("posegraph_kernel"),
             "kernel_k": kwargs.pop("posegraph_kernel_k"),
         }

@@ -64,6 +64,7 @@ from lidar_iris_eval.evaluation.protocol1 import Protocol1Result, score_protocol
 from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.io.loops import (
     TIME_TOLERANCE,
+    G2OGraph,
     Keyframes,
     LoopFile,
     place,
@@ -332,7 +333,8 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
                    keyframe_map: str | os.PathLike | None = None,
                    time_tolerance: float = TIME_TOLERANCE, posegraph: bool | None = None,
                    kernel: str = "none", kernel_k: float | None = None,
-                   coverage_tolerance: int = 0) -> Evaluation:
+                   coverage_tolerance: int = 0,
+                   odometry: str | os.PathLike | np.ndarray | None = None) -> Evaluation:
     """Score each loop file against ``sequence`` (a Sequence or a path) as one protocol 1 run.
 
     ``formats``: one format for all files, one per file, or None (detected).
@@ -344,7 +346,9 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
     keyframe) or ``keyframe_map`` (``keyframe scan`` lines), else they are
     frame ids. ``posegraph``: optimise g2o graphs (True), never (False), or
     when the file has vertices and gtsam is installed (None);
-    ``kernel``/``kernel_k`` the robust kernel of the loop edges.
+    ``kernel``/``kernel_k`` the robust kernel of the loop edges. ``odometry`` (a
+    pose file or ``(N, 4, 4)`` LiDAR poses, one per scan) builds the graph for files
+    whose loops carry poses (:func:`odometry_graph`).
     """
     settings = Settings() if settings is None else settings
     if isinstance(sequence, (str, os.PathLike)):
@@ -365,6 +369,7 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
     scan_times = getattr(sequence, "times", None)
     times = scan_times if settings.exclude_seconds is not None else None
     keyframes = read_keyframes(keyframe_times, keyframe_map)
+    odometry = _odometry_poses(odometry, len(sequence))
     started = time.perf_counter()
     results = []
     for path, fmt, name in zip(paths, formats, source_names(paths), strict=True):
@@ -375,7 +380,7 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
                              keyframes=keyframes, tolerance=time_tolerance,
                              coverage_tolerance=coverage_tolerance)
         damage = _damage(loops, scored, sequence, scan_times, keyframes, time_tolerance,
-                         posegraph, kernel, kernel_k)
+                         posegraph, kernel, kernel_k, odometry)
         if damage is not None:
             scored = replace(scored, damage=damage)
         digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
@@ -419,9 +424,52 @@ def loop_scores(evaluation: Evaluation) -> dict[str, LoopScore]:
             if getattr(r, "loop_score", None) is not None}
 
 
+#: the edge sigmas of a graph built from --loops-odometry (no information in the files)
+ODOMETRY_SIGMA_M, ODOMETRY_SIGMA_RAD = 0.1, 0.01
+
+
+def odometry_graph(odometry: np.ndarray, loops: LoopFile, query: np.ndarray,
+                   match: np.ndarray) -> tuple[G2OGraph, np.ndarray]:
+    """A pose graph from an odometry (one LiDAR pose per scan) and a file's loop poses.
+
+    Vertex ``k`` is scan ``k`` at its odometry pose; an edge joins each pair of
+    consecutive scans (their odometry motion) and each loop with a full pose (the
+    match's pose in the query's frame). Every edge gets the same information
+    (sigma 0.1 m, 0.01 rad; g2o order). Returns the graph and each loop's edge index
+    (-1: no usable pose).
+    """
+    info = np.diag([1 / ODOMETRY_SIGMA_M**2] * 3 + [4 / ODOMETRY_SIGMA_RAD**2] * 3)
+    n = len(odometry)
+    edges = [(k, k + 1, np.linalg.inv(odometry[k]) @ odometry[k + 1], info)
+             for k in range(n - 1)]
+    index = np.full(len(query), -1, dtype=np.int64)
+    for k, (q, m) in enumerate(zip(query, match, strict=True)):
+        T = loops.pose[k] if loops.pose is not None else None
+        if m < 0 or T is None or not np.isfinite(T).all():
+            continue
+        index[k] = len(edges)
+        edges.append((int(q), int(m), T, info))
+    graph = G2OGraph({k: odometry[k] for k in range(n)}, edges, [0])
+    return graph, index
+
+
 def _damage(loops: LoopFile, scored: LoopScore, sequence, scan_times, keyframes, tolerance,
-            posegraph: bool | None, kernel: str, kernel_k: float | None):
-    """The pose-graph damage of a g2o file with vertices, or None (module docstring)."""
+            posegraph: bool | None, kernel: str, kernel_k: float | None,
+            odometry: np.ndarray | None = None):
+    """The pose-graph damage of a g2o file with vertices (or of any file's loop poses on
+    ``odometry``), or None (module docstring)."""
+    if odometry is not None and posegraph is not False:
+        from lidar_iris_eval.evaluation.posegraph_damage import KERNEL_K, posegraph_damage
+
+        graph, index = odometry_graph(odometry, loops, scored.query, scored.match)
+        if not (index >= 0).any():
+            warn(loops.path, "no loop carries a full pose: no pose-graph damage from "
+                             "--loops-odometry")
+            return None
+        return posegraph_damage(graph, index, scored.status,
+                                {k: k for k in range(len(odometry))},
+                                sequence.poses[:, :3, 3], kernel=kernel,
+                                kernel_k=KERNEL_K if kernel_k is None else kernel_k)
     graph = loops.graph
     usable = (graph is not None and bool(graph.vertices) and len(loops) > 0
               and loops.n_odometry_edges > 0)
@@ -444,3 +492,20 @@ def _damage(loops: LoopFile, scored: LoopScore, sequence, scan_times, keyframes,
                             dict(zip(ids.tolist(), scans.tolist(), strict=True)),
                             sequence.poses[:, :3, 3], kernel=kernel,
                             kernel_k=KERNEL_K if kernel_k is None else kernel_k)
+
+
+def _odometry_poses(odometry, n_frames: int) -> np.ndarray | None:
+    """``(N, 4, 4)`` odometry poses from a KITTI/TUM file (or an array), one per scan."""
+    if odometry is None:
+        return None
+    if isinstance(odometry, (str, os.PathLike)):
+        from lidar_iris_eval.io.poses import read_pose_file
+
+        source = str(odometry)
+        _, poses = read_pose_file(odometry)
+    else:
+        source, poses = "odometry", np.asarray(odometry, dtype=np.float64)
+    if poses.shape != (n_frames, 4, 4):
+        raise LirisError(f"--loops-odometry {source}", f"needs one pose per scan: "
+                                                       f"{len(poses)} poses, {n_frames} scans")
+    return poses

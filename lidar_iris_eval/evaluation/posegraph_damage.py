@@ -137,10 +137,10 @@ def posegraph_damage(graph, loop_edges: np.ndarray, status: np.ndarray,
     """Optimise ``graph`` (:class:`~lidar_iris_eval.io.loops.G2OGraph`) three ways plus one
     per false loop (module docstring).
 
-    ``loop_edges[k]`` is the index in ``graph.edges`` of the file's ``k``-th loop,
-    ``status[k]`` its status (``"true"``, ``"false"``, other); ``vertex_scans``
-    maps each vertex id to its scan; ``reference`` ``(N, 3)`` are the sequence's
-    positions the APE is measured against.
+    ``loop_edges[k]`` is the index in ``graph.edges`` of the file's ``k``-th loop (-1:
+    the loop is no edge, e.g. it has no pose), ``status[k]`` its status (``"true"``,
+    ``"false"``, other); ``vertex_scans`` maps each vertex id to its scan;
+    ``reference`` ``(N, 3)`` are the sequence's positions the APE is measured against.
     """
     if kernel not in KERNELS:
         raise LirisError(f"--posegraph-kernel {kernel}", f"choose from {', '.join(KERNELS)}")
@@ -148,7 +148,9 @@ def posegraph_damage(graph, loop_edges: np.ndarray, status: np.ndarray,
         raise LirisError("pose-graph damage", "the graph has no vertices (no initial "
                                               "estimate to optimise)")
     gtsam = _gtsam()
-    loop_set = {int(e) for e in loop_edges}
+    loop_edges = np.asarray(loop_edges, dtype=np.int64)
+    in_graph = loop_edges >= 0
+    loop_set = {int(e) for e in loop_edges[in_graph]}
     odometry = [e for e in range(len(graph.edges)) if e not in loop_set]
     ids = sorted(graph.vertices)
     anchor = graph.fixed[0] if graph.fixed else ids[0]
@@ -170,7 +172,7 @@ def posegraph_damage(graph, loop_edges: np.ndarray, status: np.ndarray,
                                     gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     for e in odometry:
         base.add(factor(e, robust=False))
-    loop_factors = {int(e): factor(int(e), robust=True) for e in loop_edges
+    loop_factors = {int(e): factor(int(e), robust=True) for e in loop_edges[in_graph]
                     if np.isfinite(graph.edges[int(e)][2]).all()}
     order = [v for v in ids if v in vertex_scans]
     ref = reference[[vertex_scans[v] for v in order]]
@@ -192,11 +194,12 @@ def posegraph_damage(graph, loop_edges: np.ndarray, status: np.ndarray,
 
     if len(order) < 3:
         raise LirisError("pose-graph damage", "fewer than 3 vertices are placed on scans")
-    true_edges = [int(e) for e, s in zip(loop_edges, status, strict=True) if s == "true"]
-    false_idx = np.flatnonzero(np.asarray(status) == "false")[:MAX_SINGLE_FALSE]
+    status = np.asarray(status)
+    true_edges = [int(e) for e in loop_edges[(status == "true") & in_graph]]
+    false_idx = np.flatnonzero((status == "false") & in_graph)[:MAX_SINGLE_FALSE]
     ape_true = ape(true_edges)
     plus = np.array([ape(true_edges + [int(loop_edges[k])]) for k in false_idx])
-    return Damage(ape(odometry[:0]), ape_true, ape([int(e) for e in loop_edges]),
+    return Damage(ape([]), ape_true, ape(sorted(loop_set)),
                   false_idx.astype(np.int64), plus, len(order), len(odometry),
-                  len(true_edges), int(np.count_nonzero(np.asarray(status) == "false")),
-                  len(loop_edges), kernel, kernel_k)
+                  len(true_edges), int(np.count_nonzero((status == "false") & in_graph)),
+                  len(loop_set), kernel, kernel_k)
