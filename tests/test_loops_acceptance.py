@@ -222,6 +222,9 @@ def test_posegraph_damage_true_loops_beat_none_and_all(world, tmp_path, capsys):
     singles = table[table.graph.str.startswith("true+")]
     assert len(singles) == 3 and (singles.added_m > 0).all()
     assert "APE RMSE" in text
+    code, shown, err = run_cli(["show", tmp_path / "run"], capsys)
+    assert code == 0, err
+    assert "ape_true_m" in shown and f"{true:.4f}" in shown
 
 
 #: APE RMSE (m) of the --loops-odometry graph (per-scan drift, equal edge weights)

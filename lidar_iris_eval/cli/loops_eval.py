@@ -102,6 +102,9 @@ def evaluate_loops_cli(seq, loop_paths, loop_format, index_base, gap, settings, 
         return
     click.echo(render_table(run.rows, table_format()))
     err = table_format() != "table"
+    from lidar_iris_eval.runs.loop_table import render_loops_table
+
+    click.echo(render_loops_table(run.rows, table_format()), err=err)
     for row in run.rows:
         coverage = row["revisit_coverage"]
         click.echo(f"{row['descriptor']}: {row['n_loops']} loops, {row['loops_tp']} TP / "
