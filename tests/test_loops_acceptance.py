@@ -49,6 +49,7 @@ def world(tmp_path_factory):
     np.savetxt(root / "times.txt", times, fmt="%.3f")
     keys = np.arange(0, n, KEY_EVERY)  # keyframes: every 2nd scan, ids 0..K-1
     np.savetxt(root / "kf_times.txt", times[keys], fmt="%.3f")
+    (root / "kf_map.txt").write_text("".join(f"{k} {s}\n" for k, s in enumerate(keys)))
     # independent ground truth: revisit queries i (i >= E) with some j <= i - E within R
     pos = P[:, :3, 3]
     d = np.linalg.norm(pos[:, None] - pos[None], axis=2)
@@ -139,6 +140,7 @@ def _eval(root, out, capsys, *args):
 
 @pytest.mark.parametrize("name, args", [
     ("g2o", ["--loops-times", "kf_times.txt"]),
+    ("g2o", ["--loops-map", "kf_map.txt"]),
     ("tum", []),
     ("pairs", ["--loops-index-base", "1"]),
     ("mapclosures", []),

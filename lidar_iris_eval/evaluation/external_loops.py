@@ -93,6 +93,11 @@ class LoopParams:
     index_base: int = 0
     gap: int = 1
     scored: bool = False
+    keyframes: str = ""  # how keyframe ids were placed on scans ("" : frame ids)
+    time_tolerance_s: float = TIME_TOLERANCE
+    coverage_tolerance_frames: int = 0
+    posegraph_kernel: str = "none"
+    odometry: str = ""  # --loops-odometry file, when given
 
 
 @dataclass(frozen=True)
@@ -369,6 +374,7 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
     scan_times = getattr(sequence, "times", None)
     times = scan_times if settings.exclude_seconds is not None else None
     keyframes = read_keyframes(keyframe_times, keyframe_map)
+    odometry_source = odometry if isinstance(odometry, (str, os.PathLike)) else None
     odometry = _odometry_poses(odometry, len(sequence))
     started = time.perf_counter()
     results = []
@@ -386,7 +392,10 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
         digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
         source = LoopSource(name, LoopParams(str(Path(path).resolve()), loops.format, digest,
                                              loops.rule, index_base, gap,
-                                             loops.score is not None))
+                                             loops.score is not None,
+                                             keyframes.rule if keyframes is not None else "",
+                                             time_tolerance, coverage_tolerance, kernel,
+                                             str(odometry_source or "")))
         db = NoDescriptors(np.full(len(sequence), np.nan))
         rows = result_rows(source, db, scored.protocol1, None, settings)
         rows[0]["match_ms_per_query"] = None  # computed elsewhere
