@@ -5,6 +5,7 @@ list, scored from the poses alone (``liris eval --poses --times --loops``)."""
 from __future__ import annotations
 
 import json
+from importlib.util import find_spec as _find_spec
 
 import numpy as np
 import pandas as pd
@@ -163,6 +164,26 @@ def test_each_format_gives_20_tp_3_fp_and_the_coverage(world, tmp_path, capsys, 
                        table[table.status == "false"]["match"], strict=True))
     assert false == sorted(expected["false_scans"])
     assert "20 TP / 3 FP" in text
+    if name in ("g2o", "mapclosures", "mapclosures18"):  # the loops' poses: exact for true loops
+        assert row["loops_rte_m_median"] < 1e-6 and row["loops_rre_deg_median"] < 1e-4
+        assert row["loops_rr"] == 1.0
+
+
+def test_without_gtsam_one_warning_or_one_error(world, tmp_path, capsys, monkeypatch):
+    import sys
+
+    root, _ = world
+    monkeypatch.setitem(sys.modules, "gtsam", None)  # import gtsam now fails
+    monkeypatch.setattr("importlib.util.find_spec",
+                        lambda name, *a: None if name == "gtsam" else _find_spec(name, *a))
+    rows, text = _eval(root, tmp_path / "a", capsys, "--loops", root / "graph.g2o",
+                       "--loops-times", root / "kf_times.txt")
+    assert "posegraph_ape_true_m" not in rows[0] and "gtsam is not installed" in text
+    code, _, err = run_cli(["eval", "--poses", root / "poses.txt", "--times", root / "times.txt",
+                            "--loops", root / "graph.g2o", "--loops-times",
+                            root / "kf_times.txt", "--posegraph", "--out", tmp_path / "b"],
+                           capsys)
+    assert_one_line_error(code, err, "needs gtsam", "posegraph")
 
 
 def test_coverage_within_a_frame_tolerance_and_stretches(world, tmp_path, capsys):
