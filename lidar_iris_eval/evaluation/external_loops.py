@@ -489,7 +489,7 @@ def _damage(loops: LoopFile, scored: LoopScore, sequence, scan_times, keyframes,
                                      "odometry edges and loop edges")
     if posegraph is None and importlib.util.find_spec("gtsam") is None:
         warn(loops.path, "gtsam is not installed: no pose-graph damage (pip install "
-                         "'lidar-iris-eval[posegraph]')")
+                         "'lidar_iris_eval[posegraph]')")
         return None
     from lidar_iris_eval.evaluation.posegraph_damage import KERNEL_K, posegraph_damage
 

@@ -24,7 +24,7 @@ information is divided by 4 for the angle. An optional robust kernel
 (``huber`` / ``cauchy``, with ``kernel_k`` in whitened units) is applied to
 the loop edges only, the way back ends guard against false loops.
 
-GTSAM is the optional extra ``posegraph`` (``pip install 'lidar-iris-eval[posegraph]'``),
+GTSAM is the optional extra ``posegraph`` (``pip install 'lidar_iris_eval[posegraph]'``),
 imported only when this runs.
 """
 
@@ -51,7 +51,7 @@ def _gtsam():
         import gtsam
     except ImportError:
         raise LirisError("pose-graph damage", "needs gtsam: pip install "
-                                              "'lidar-iris-eval[posegraph]'") from None
+                                              "'lidar_iris_eval[posegraph]'") from None
     return gtsam
 
 
