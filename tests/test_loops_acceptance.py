@@ -334,3 +334,14 @@ def test_figures_draw_each_loop_and_the_ape_bars(world, tmp_path, capsys):
     code, _, err = run_cli(["report", out], capsys)
     assert code == 0, err
     assert "id='loops'" in (out / "report" / "index.html").read_text()
+
+
+def test_config_reruns_a_loops_run_from_poses(world, tmp_path, capsys):
+    root, _ = world
+    rows, _ = _eval(root, tmp_path / "a", capsys, "--loops", root / "graph.g2o", "--loops-times",
+                    root / "kf_times.txt", "--no-posegraph", "--loops-coverage-tolerance", "2")
+    code, _, err = run_cli(["eval", "--config", tmp_path / "a", "--out", tmp_path / "b"], capsys)
+    assert code == 0, err
+    again = json.loads((tmp_path / "b" / "metrics.json").read_text())["results"]
+    keys = ("loops_tp", "loops_fp", "revisit_coverage", "coverage_tolerance_frames", "ap")
+    assert [{k: r[k] for k in keys} for r in again] == [{k: r[k] for k in keys} for r in rows]

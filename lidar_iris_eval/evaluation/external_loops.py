@@ -98,6 +98,8 @@ class LoopParams:
     coverage_tolerance_frames: int = 0
     posegraph_kernel: str = "none"
     odometry: str = ""  # --loops-odometry file, when given
+    keyframe_times: str = ""  # --loops-times file, when given
+    keyframe_map: str = ""  # --loops-map file, when given
 
 
 @dataclass(frozen=True)
@@ -395,7 +397,9 @@ def evaluate_loops(sequence, paths: Sequence[str | os.PathLike], settings: Setti
                                              loops.score is not None,
                                              keyframes.rule if keyframes is not None else "",
                                              time_tolerance, coverage_tolerance, kernel,
-                                             str(odometry_source or "")))
+                                             _resolved(odometry_source),
+                                             _resolved(keyframe_times),
+                                             _resolved(keyframe_map)))
         db = NoDescriptors(np.full(len(sequence), np.nan))
         rows = result_rows(source, db, scored.protocol1, None, settings)
         rows[0]["match_ms_per_query"] = None  # computed elsewhere
@@ -501,6 +505,10 @@ def _damage(loops: LoopFile, scored: LoopScore, sequence, scan_times, keyframes,
                             dict(zip(ids.tolist(), scans.tolist(), strict=True)),
                             sequence.poses[:, :3, 3], kernel=kernel,
                             kernel_k=KERNEL_K if kernel_k is None else kernel_k)
+
+
+def _resolved(path) -> str:
+    return "" if path is None else str(Path(path).resolve())
 
 
 def _odometry_poses(odometry, n_frames: int) -> np.ndarray | None:
