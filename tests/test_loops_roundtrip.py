@@ -112,3 +112,20 @@ def test_sequence_times_are_the_tum_clock(run):
     seq, _, _ = run
     times = np.loadtxt(seq / "times.txt")
     assert times[0] < 10.0 < times[-1] and times[-1] < 9999.0  # late.tum's 2nd line is placed
+
+
+def test_g2o_with_other_records_skips_them_with_one_warning(run, tmp_path, capsys):
+    seq, _, _ = run
+    graph = tmp_path / "graph.g2o"  # hdl_graph_slam also writes a floor plane and its edges
+    graph.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 0 0 0 0 0 0 1\n"
+                     "VERTEX_SE3:QUAT 60 0 0 0 0 0 0 1\nVERTEX_PLANE 200 0 0 1 0\n"
+                     "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1\nEDGE_SE3_PLANE 0 200 0 0 1 0 1 0 0 1 0 1\n"
+                     "EDGE_SE3:QUAT 60 0 0 0 0 0 0 0 1\n")
+    code, _, err = run_cli(["eval", seq, "--exclude", EXCLUDE, "--loops", graph,
+                            "--no-posegraph", "--out", tmp_path / "r"], capsys)
+    assert code == 0, err
+    warnings = [line for line in err.splitlines() if "skipped records" in line]
+    assert len(warnings) == 1 and "1 EDGE_SE3_PLANE" in warnings[0] \
+        and "1 VERTEX_PLANE" in warnings[0]
+    row = json.loads((tmp_path / "r" / "metrics.json").read_text())["results"][0]
+    assert row["n_loops"] == 1

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_iris_eval.errors import LirisError, read_text
+from lidar_iris_eval.errors import LirisError, read_text, warn
 from lidar_iris_eval.io.poses import is_number, quaternion_to_matrix
 
 LOOP_FORMATS = ("g2o", "matches", "liris-txt", "pairs", "tum", "mapclosures")
@@ -211,20 +211,23 @@ class G2OGraph:
     edge_lines: list[int] = field(default_factory=list)
 
 
-def parse_g2o(path: str | Path, text: str | None = None, *, need_vertices: bool = False
-              ) -> G2OGraph:
+def parse_g2o(path: str | Path, text: str | None = None, *, need_vertices: bool = False,
+              skip_unknown: bool = False) -> G2OGraph:
     """The one reader of g2o's ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` / ``FIX`` records.
 
     An edge has 7 pose numbers and optionally the 21 upper-triangular entries of
     its information matrix (rebuilt symmetric, must be positive definite). An
     edge naming a vertex the file does not define is an error naming its line
-    (when the file defines vertices, or always with ``need_vertices``).
+    (when the file defines vertices, or always with ``need_vertices``). Any other
+    record is an error, or with ``skip_unknown`` skipped with one warning counting
+    them by tag (hdl_graph_slam also writes planes, GPS and IMU priors).
     """
     path = Path(path)
     text = read_text(path, "g2o file") if text is None else text
     vertices: dict[int, np.ndarray] = {}
     vertex_lines: dict[int, int] = {}
     edges, edge_lines, fixed = [], [], []
+    skipped: dict[str, int] = {}
     for number, fields in _records(text):
         where = f"{path}:{number}"
         tag, rest = fields[0].upper(), fields[1:]
@@ -257,9 +260,14 @@ def parse_g2o(path: str | Path, text: str | None = None, *, need_vertices: bool 
             edge_lines.append(number)
         elif tag == "FIX":
             fixed.extend(_integer(v, where, "fixed vertex id") for v in rest)
+        elif skip_unknown:
+            skipped[fields[0]] = skipped.get(fields[0], 0) + 1
         else:
             raise LirisError(where, f"unknown record {fields[0]} (liris reads VERTEX_SE3:QUAT, "
                                     "EDGE_SE3:QUAT and FIX)")
+    if skipped:
+        warn(path, "skipped records liris does not read: " + ", ".join(
+            f"{count} {tag}" for tag, count in sorted(skipped.items())))
     if vertices or need_vertices:
         for (a, b, _, _), number in zip(edges, edge_lines, strict=True):
             for vid in (a, b):
@@ -271,7 +279,7 @@ def parse_g2o(path: str | Path, text: str | None = None, *, need_vertices: bool 
 
 
 def _read_g2o(path: Path, text: str, gap: int) -> LoopFile:
-    graph = parse_g2o(path, text)
+    graph = parse_g2o(path, text, skip_unknown=True)
     if not graph.edges:
         raise LirisError(path, "no EDGE_SE3:QUAT records: not a pose graph with loops")
     query, match, pose, lines, edge_index = [], [], [], [], []
