@@ -345,3 +345,31 @@ def test_config_reruns_a_loops_run_from_poses(world, tmp_path, capsys):
     again = json.loads((tmp_path / "b" / "metrics.json").read_text())["results"]
     keys = ("loops_tp", "loops_fp", "revisit_coverage", "coverage_tolerance_frames", "ap")
     assert [{k: r[k] for k in keys} for r in again] == [{k: r[k] for k in keys} for r in rows]
+
+
+def test_g2o_information_means_the_same_error_in_gtsam():
+    gtsam = pytest.importorskip("gtsam")
+    from scipy.spatial.transform import Rotation
+
+    from lidar_iris_eval.evaluation.posegraph_damage import _gtsam_information
+
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(6, 6))
+    info = A @ A.T + 6 * np.eye(6)  # g2o order: x y z qx qy qz
+    measured = np.eye(4)
+    measured[:3, :3] = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    measured[:3, 3] = [1.0, 2.0, -0.5]
+    delta = np.eye(4)  # a small error: measured^-1 * (Xa^-1 Xb)
+    delta[:3, :3] = Rotation.from_rotvec([0.002, -0.001, 0.003]).as_matrix()
+    delta[:3, 3] = [0.003, -0.002, 0.001]
+    Xb = measured @ delta
+    # g2o's error: the translation and the quaternion's vector part of delta
+    e = np.r_[delta[:3, 3], Rotation.from_matrix(delta[:3, :3]).as_quat()[:3]]
+    g2o_chi2 = e @ info @ e
+    factor = gtsam.BetweenFactorPose3(0, 1, gtsam.Pose3(measured),
+                                      gtsam.noiseModel.Gaussian.Information(
+                                          _gtsam_information(info)))
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose3(np.eye(4)))
+    values.insert(1, gtsam.Pose3(Xb))
+    assert 2 * factor.error(values) == pytest.approx(g2o_chi2, rel=0.01)
