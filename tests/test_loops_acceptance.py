@@ -373,3 +373,20 @@ def test_g2o_information_means_the_same_error_in_gtsam():
     values.insert(0, gtsam.Pose3(np.eye(4)))
     values.insert(1, gtsam.Pose3(Xb))
     assert 2 * factor.error(values) == pytest.approx(g2o_chi2, rel=0.01)
+
+
+def test_tum_poses_bring_their_own_times(world, tmp_path, capsys):
+    from scipy.spatial.transform import Rotation
+
+    root, _ = world
+    P = np.loadtxt(root / "poses.txt").reshape(-1, 3, 4)
+    times = np.loadtxt(root / "times.txt")
+    quats = Rotation.from_matrix(P[:, :, :3]).as_quat()
+    tum = tmp_path / "poses.tum.txt"
+    np.savetxt(tum, np.c_[times, P[:, :, 3], quats], fmt="%.9f")
+    code, _, err = run_cli(["eval", "--poses", tum, "--radius", str(RADIUS), "--exclude",
+                            str(EXCLUDE), "--loops", root / "loops.tum", "--out",
+                            tmp_path / "run"], capsys)
+    assert code == 0, err
+    row = json.loads((tmp_path / "run" / "metrics.json").read_text())["results"][0]
+    assert (row["loops_tp"], row["loops_fp"]) == (20, 3)
