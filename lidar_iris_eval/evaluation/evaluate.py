@@ -315,7 +315,7 @@ def _with_loop_poses(result: DescriptorResult, sequence, positions, forward, set
     p1, loops = lp.apply(result.protocol1, sequence, positions, forward, loop_settings,
                          desc_name=result.descriptor.name, progress=progress,
                          run_settings=settings)
-    rows = _rows(result.descriptor, result.db, p1, result.protocol2, settings) \
+    rows = result_rows(result.descriptor, result.db, p1, result.protocol2, settings) \
         if p1 is not result.protocol1 else [dict(r) for r in result.rows]
     rows[0].update(lp.loop_pose_metrics(p1, loops, loop_settings,
                                         points=lp.has_points(sequence)))
@@ -351,7 +351,7 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
                                s.replace(candidates=s.candidates if desc.two_stage else None),
                                progress=None if p1 is not None else bar.update,
                                executor=executor)
-    return DescriptorResult(desc, db, p1, p2, _rows(desc, db, p1, p2, s))
+    return DescriptorResult(desc, db, p1, p2, result_rows(desc, db, p1, p2, s))
 
 
 def ranking_row(desc, db, positions, settings: Settings, times=None) -> dict:
@@ -398,7 +398,9 @@ def _odometry_ms(db, source: str) -> float | None:
     return float(seconds.mean() * 1e3) if len(seconds) else None
 
 
-def _rows(desc, db, p1, p2, settings) -> list[dict]:
+def result_rows(desc, db, p1, p2, settings) -> list[dict]:
+    """The ``metrics.json`` rows of one method (one per protocol scored): what every method
+    and every ``--loops`` source (evaluation/external_loops.py) reports."""
     base = {"descriptor": desc.name, "preset": desc.preset, **desc.run_info()}
     if "odometry" in base:  # a local-map method: what its odometry cost per scan
         base["odometry_ms_per_scan"] = _odometry_ms(db, base["odometry"])

@@ -37,6 +37,8 @@ FILE_STEMS = {
     "iris_alignment": "iris_alignment",
     "recall": "recall_at_n",
     "pr_cross": "pr_cross_session",
+    "loops": "loops_trajectory",
+    "posegraph": "posegraph_ape",
 }
 IRIS = "lidar-iris"
 
@@ -103,6 +105,30 @@ def build_trajectory(run: Run) -> Figure:
         results[name] = outcomes(matches, tau)
     return trajectory_figure(run.positions(), ground_plane_axes(settings.pose_frame),
                              run.ground_truth().revisit, results, frame=settings.pose_frame)
+
+
+def build_loops(run: Run) -> tuple[Figure | None, Figure | None]:
+    """A ``--loops`` run's loops on the trajectory, and its pose-graph APE bars (or None)."""
+    from lidar_iris_eval.evaluation.ground_truth import ground_plane_axes
+    from lidar_iris_eval.plotting.loops import loops_figure, posegraph_figure
+
+    tables = run.loop_tables("loops")
+    if not tables:
+        return None, None
+    settings = run.gt_settings()
+    trajectory = loops_figure(run.positions(), ground_plane_axes(settings.pose_frame),
+                              run.ground_truth().revisit, tables, frame=settings.pose_frame)
+    graphs = run.loop_tables("posegraph")
+    for name, table in graphs.items():  # label each false loop by its frames
+        loops = tables.get(name)
+        if loops is not None and "loop" in table.columns:
+            k = table["loop"].to_numpy(dtype=np.int64)
+            ok = (k >= 0) & (k < len(loops))
+            table = table.copy()
+            table["query"] = np.where(ok, loops["query"].to_numpy()[np.clip(k, 0, None)], -1)
+            table["match"] = np.where(ok, loops["match"].to_numpy()[np.clip(k, 0, None)], -1)
+            graphs[name] = table
+    return trajectory, (posegraph_figure(graphs) if graphs else None)
 
 
 def build_timing(run: Run) -> Figure | None:
@@ -218,13 +244,15 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
         "pr2": build_pr(run, 2),
         "affinity": build_affinity(run),
         "trajectory": build_trajectory(run),
-        "timing": build_timing(run),
+        # a --loops run extracted and matched nothing: no timing to show
+        "timing": None if run.loop_tables("loops") else build_timing(run),
     }
     # only for a run that scored LiDAR Iris: a GOSMatch or ESM run's figures must not
     # show another method's internals as if they were its own
     if IRIS in run.descriptors():
         figures["iris_frame"], figures["iris_alignment"] = build_iris(run, frame)
     figures["recall"] = build_recall(run)  # with --ranking
+    figures["loops"], figures["posegraph"] = build_loops(run)  # a --loops run
     return _write(figures, out, fmt, warn_overwrite=not default_out)
 
 

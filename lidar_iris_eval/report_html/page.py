@@ -121,6 +121,14 @@ def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
         sections += ["<h2>Trajectory: protocol 1 at each method's max-F1 threshold</h2>",
                      "<p>Click a legend entry to show or hide it; one method is shown at first."
                      "</p>", _div(trajectory_figure(run, go), "trajectory")]
+    if run.loop_tables("loops"):
+        sections += ["<h2>Loops of each --loops file</h2>",
+                     "<p>Each loop is a segment between its two poses: green true, red false "
+                     "(ground-truth distance under / not under the radius), grey dashed not "
+                     "scored. The bars are the APE RMSE (after SE(3) alignment) of the pose "
+                     "graph optimised with no loops, its true loops and all its loops, and "
+                     "what each false loop adds alone (docs/loops.md).</p>",
+                     loop_images(run)]
     if run.descriptors(2):
         sections += ["<h2>Affinity matrices (protocol 2)</h2>",
                      "<p>Similarity = 1 &minus; min-max normalised distance (bright = similar);"
@@ -263,6 +271,24 @@ def affinity_png(matrix: np.ndarray, max_px: int = MAX_AFFINITY_PX) -> bytes:
     buffer = io.BytesIO()
     plt.imsave(buffer, image, cmap="viridis", vmin=0.0, vmax=1.0, format="png")
     return buffer.getvalue()
+
+
+def loop_images(run: Run) -> str:
+    """The loops-on-trajectory and pose-graph APE figures of a --loops run, as PNG."""
+    from lidar_iris_eval.plotting.figures import build_loops
+
+    figures = []
+    for fig, caption in zip(build_loops(run), ("loops on the trajectory",
+                                               "pose-graph APE RMSE"), strict=True):
+        if fig is None:
+            continue
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format="png", dpi=110)
+        data = base64.b64encode(buffer.getvalue()).decode("ascii")
+        figures.append(f"<figure><img style='width: 640px' alt='{caption}' "
+                       f"src='data:image/png;base64,{data}'><figcaption>{caption}"
+                       f"</figcaption></figure>")
+    return "<div id='loops'>" + "".join(figures) + "</div>"
 
 
 def affinity_images(run: Run, max_px: int = MAX_AFFINITY_PX) -> str:

@@ -255,6 +255,18 @@ class Run:
     def has(self, relative: str) -> bool:
         return (self.path / relative).is_file()
 
+    def loop_tables(self, kind: str = "loops") -> dict[str, pd.DataFrame]:
+        """``{loop source: loops/<name>/<kind>.csv}`` (``kind`` ``loops`` or ``posegraph``)
+        of a ``liris eval --loops`` run, for the sources that have the file."""
+        columns = {"loops": ("query", "match", "status"),
+                   "posegraph": ("graph", "ape_rmse_m", "added_m")}[kind]
+        out = {}
+        for name in self.descriptors(1):
+            table = self._csv(f"loops/{name}/{kind}.csv", columns, required=False)
+            if table is not None:
+                out[name] = table
+        return out
+
     def _csv(self, relative: str, columns: tuple[str, ...] = (),
              required: bool = True) -> pd.DataFrame | None:
         if relative not in self._cache:

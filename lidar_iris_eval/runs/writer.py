@@ -245,6 +245,9 @@ def write_run(evaluation: Evaluation, out: str | os.PathLike, overwrite: bool = 
             if r.protocol2 is not None:
                 write_protocol2(run, r.descriptor.name, r.protocol2)
             write_timing(run, r.descriptor.name, r.db.extract_s, r.db.read_s)
+            extra_files = getattr(r, "extra_files", None)  # e.g. a loop file's loops.csv
+            for relative, columns in (extra_files() if extra_files is not None else {}).items():
+                run.write_csv(relative, columns)
         for (protocol, name), curves in evaluation.seed_curves.items():
             for seed, curve in curves:
                 run.write_csv(f"protocol{protocol}/{name}/pr_seed{seed}.csv", pr_table(curve))
