@@ -1,0 +1,95 @@
+"""``liris eval --convention-band`` (issue 38 item 3): one matching pass, every preset.
+
+The per-preset values must equal separate runs with ``--convention NAME``
+(computed here by the CLI, each its own matching pass), and the run's own
+numbers must not move when the band is asked for.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import run_cli
+
+METRICS = ("ap", "f1_max", "r100p", "ep", "n_queries", "n_revisits", "n_true_top1")
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    from lidar_iris_eval.simulate import simulate_sequence
+
+    root = simulate_sequence(tmp_path_factory.mktemp("band") / "sim", preset="tiny-mixed",
+                             frames=110, azimuth_steps=128)
+    # one scan a second: LoGG3D-Net's 30 s window is then 30 frames and has queries
+    np.savetxt(root / "times.txt", np.arange(110, dtype=float), fmt="%.6f")
+    return root
+
+
+def _run(seq, out, capsys, *extra):
+    code, _, err = run_cli(["eval", seq, "--descriptor", "scan-context,m2dp", "--cache-dir",
+                            out.parent / "cache", "--out", out, "-q", *extra], capsys)
+    assert code == 0, err
+    return json.loads((out / "metrics.json").read_text())
+
+
+def _p1(metrics):
+    return {r["descriptor"]: r for r in metrics["results"] if r["protocol"] == 1}
+
+
+@pytest.mark.parametrize("protocols", [["--protocol", "1"], ["--protocol", "1", "--protocol", "2"]])
+def test_band_values_equal_separate_convention_runs(seq, tmp_path, capsys, protocols):
+    band = _run(seq, tmp_path / "band", capsys, *protocols, "--convention-band")
+    plain = _run(seq, tmp_path / "plain", capsys, *protocols)
+    rows = _p1(band)
+    for name in ("scancontext-eval", "logg3d"):
+        separate = _p1(_run(seq, tmp_path / name, capsys, *protocols, "--convention", name))
+        for desc, row in rows.items():
+            assert name in row["convention_band"]["presets"]
+            got = row["convention_band"]["values"][name]
+            for key in METRICS:
+                want = separate[desc].get(key)
+                assert got[key] == pytest.approx(want, abs=1e-12), (name, desc, key)
+    for desc, row in rows.items():  # the run's own numbers do not move
+        own = _p1(plain)[desc]
+        for key in METRICS:
+            assert row[key] == own[key]
+            entry = row["convention_band"]["metrics"][key]
+            assert entry["own"] == pytest.approx(own[key])
+            values = [v[key] for v in row["convention_band"]["values"].values()
+                      if v[key] is not None]
+            assert entry["min"] == min(values) and entry["max"] == max(values)
+    assert "convention_band" in band["conventions"]
+    assert "convention_band" not in plain["conventions"]
+
+
+def test_band_records_what_it_leaves_out(seq, tmp_path, capsys):
+    row = _p1(_run(seq, tmp_path / "b", capsys, "--protocol", "1", "--convention-band"))
+    skipped = row["m2dp"]["convention_band"]["skipped"]
+    assert "iris-cpp" in skipped  # E = 300 > 110 frames
+    assert "contour-context" in skipped  # LiDAR-frame poses; this run uses camera poses
+    assert "bevplace-00" in skipped
+
+
+def test_band_refuses_protocol_2_alone(seq, tmp_path, capsys):
+    from conftest import assert_one_line_error
+
+    code, _, err = run_cli(["eval", seq, "--descriptor", "m2dp", "--protocol", "2",
+                            "--convention-band", "--out", tmp_path / "x", "-q"], capsys)
+    assert_one_line_error(code, err, "--convention-band")
+
+
+def test_multi_limit_reduction_equals_one_limit_at_a_time():
+    from lidar_iris_eval.matching.blocks import _best_in_block, _best_under_limits
+
+    rng = np.random.default_rng(3)
+    d = rng.integers(0, 5, size=(40, 60)).astype(float)  # many ties
+    d[rng.random(d.shape) < 0.1] = np.nan
+    y = rng.normal(size=d.shape)
+    limits = rng.integers(-1, 60, size=(5, 40))
+    m, dist, yaw = _best_under_limits(d, y, limits)
+    for k in range(5):
+        m1, d1, y1 = _best_in_block(d, y, limits[k])
+        assert np.array_equal(m[k], m1) and np.array_equal(dist[k], d1)
+        assert np.array_equal(yaw[k], y1, equal_nan=True)
