@@ -23,9 +23,10 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError, os_error
 from lidar_iris_eval.ownership import check_replaceable, replace_folder, write_manifest
+from lidar_iris_eval.plotting.pr import seed_band
 from lidar_iris_eval.runs import Run, conventions_lines, load_run
 from lidar_iris_eval.runs.schema import result_warnings
-from lidar_iris_eval.runs.table import RANKING_COLUMNS, TABLE_COLUMNS, cell, table_row
+from lidar_iris_eval.runs.table import RANKING_COLUMNS, TABLE_COLUMNS, band_rows, cell, table_row
 
 PLOTLY_JS = "plotly.min.js"
 INSTALL_HINT = "the HTML report needs plotly: pip install 'lidar_iris_eval[report]'"
@@ -107,6 +108,12 @@ def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
             f"<li>{html.escape(line)}</li>" for line in conventions_lines(run.conventions,
                                                                           run.config)) + "</ul>",
     ]
+    if band_rows(run.rows):
+        sections += ["<h2>Convention band (protocol 1)</h2>",
+                     "<p>Each metric under the run's own convention, and in brackets its "
+                     "minimum and maximum over the convention presets that apply to the run "
+                     "(one matching pass; the PR figure shades the presets' spread).</p>",
+                     band_table(run)]
     for protocol in (1, 2):
         if run.descriptors(protocol):
             sections += [f"<h2>PR curves, protocol {protocol}</h2>",
@@ -173,6 +180,17 @@ def metrics_table(run: Run) -> str:
             f"<tbody>{''.join(body)}</tbody></table>")
 
 
+def band_table(run: Run) -> str:
+    """``--convention-band``: own [min–max] per metric (the cells of ``liris show``)."""
+    rows = band_rows(run.rows)
+    columns = list(rows[0])
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(cell(r.get(c)))}</td>" for c in columns)
+                   + "</tr>" for r in rows)
+    return (f"<table id='convention-band'><thead><tr>{head}</tr></thead>"
+            f"<tbody>{body}</tbody></table>")
+
+
 def recall_figure(run: Run, go):
     """Recall@N against N (1..25) of every row with ranking metrics."""
     fig = go.Figure()
@@ -194,6 +212,14 @@ def pr_figure(run: Run, protocol: int, go):
     for k, name in enumerate(run.descriptors(protocol)):
         row = run.row(protocol, name)
         curve = run.pr(protocol, name)
+        band = seed_band(run.path / "protocol1" / name, pattern="pr_convention-*.csv") \
+            if protocol == 1 else None
+        if band is not None:  # --convention-band: the presets' spread, shaded
+            grid, low, high, count = band
+            fig.add_trace(go.Scatter(
+                x=[*grid, *grid[::-1]], y=[*high, *low[::-1]], fill="toself", mode="lines",
+                line={"width": 0}, fillcolor=COLORS[k % len(COLORS)], opacity=0.2,
+                name=f"{name}: {count} conventions", hoverinfo="skip"))
         fig.add_trace(go.Scatter(
             x=curve["recall"], y=curve["precision"], mode="lines",
             name=f"{name}/{row.get('preset')} (AP {cell(row.get('ap'))})",
