@@ -319,6 +319,10 @@ def _open_run_sequence(run: Run):
     return sequence
 
 
+#: the run's sequence for figures that need the scans (the failure atlas of ``liris report``)
+open_run_sequence = _open_run_sequence
+
+
 def _recorded_reader_options(run: Run) -> dict:
     """The reader options config.yaml records, typed again (old runs stored strings)."""
     recorded = (run.config.get("sequence") or {}).get("reader_options") or {}

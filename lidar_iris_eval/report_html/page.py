@@ -29,6 +29,10 @@ from lidar_iris_eval.runs.schema import result_warnings
 from lidar_iris_eval.runs.table import RANKING_COLUMNS, TABLE_COLUMNS, band_rows, cell, table_row
 
 PLOTLY_JS = "plotly.min.js"
+#: failure atlas cases per method and kind in a report (``liris report --failures``)
+DEFAULT_FAILURES = 3
+#: resolution of the embedded failure atlas figures
+ATLAS_DPI = 90
 INSTALL_HINT = "the HTML report needs plotly: pip install 'lidar_iris_eval[report]'"
 #: largest side of an embedded affinity image, in pixels (tiles keep the minimum distance)
 MAX_AFFINITY_PX = 600
@@ -45,8 +49,11 @@ def _plotly():
 
 
 def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = None,
-                 overwrite: bool = False, max_affinity_px: int = MAX_AFFINITY_PX) -> Path:
+                 overwrite: bool = False, max_affinity_px: int = MAX_AFFINITY_PX,
+                 failures: int = DEFAULT_FAILURES) -> Path:
     """Write ``index.html`` and ``plotly.min.js`` for the run in ``run_dir``.
+
+    ``failures``: cases per method and kind in the failure atlas section (0: none).
 
     ``out`` defaults to ``<run>/report``. An existing report folder is only
     replaced with ``overwrite``. The folder is assembled aside and moved into
@@ -67,7 +74,7 @@ def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = Non
     try:
         try:
             (tmp / PLOTLY_JS).write_text(plotly.offline.get_plotlyjs(), encoding="utf-8")
-            (tmp / "index.html").write_text(render_page(run, go, max_affinity_px),
+            (tmp / "index.html").write_text(render_page(run, go, max_affinity_px, failures),
                                             encoding="utf-8")
         except OSError as err:  # name the report, not the folder it was assembled in
             raise os_error(err, out / "index.html", "cannot write the report") from None
@@ -93,8 +100,9 @@ def warnings_list(run: Run) -> str:
             f"<ul>{items}</ul></div>")
 
 
-def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
-    """The page's HTML text."""
+def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX,
+                failures: int = 0) -> str:
+    """The page's HTML text (``failures`` > 0: with the failure atlas section)."""
     sequence = run.config.get("sequence") or run.metrics.get("sequence") or {}
     title = f"liris report: {run.name}"
     version = html.escape(str(run.metrics.get("version")))
@@ -133,6 +141,14 @@ def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
                      "<p>Similarity = 1 &minus; min-max normalised distance (bright = similar);"
                      " tiles show their most similar pair.</p>", affinity_images(run,
                                                                                  max_affinity_px)]
+    if failures > 0 and run.descriptors(1):
+        sections += ["<h2>Failure atlas (protocol 1)</h2>",
+                     f"<p>Per method, the {failures} most confident false positives (lowest "
+                     f"descriptor distance) and the {failures} revisit queries missed worst at "
+                     "the max-F1 threshold (highest distance): both scans' bird's-eye views at "
+                     "the method's and at the ground-truth pose, the method's own "
+                     "representation where it is cheap, and the pair on the trajectory.</p>",
+                     failure_atlas(run, failures)]
     body = "\n".join(sections)
     return f"""<!DOCTYPE html>
 <html lang="en">
@@ -148,6 +164,8 @@ td.num {{ text-align: right; font-variant-numeric: tabular-nums; }}
 .meta {{ color: #666; }}
 figure {{ display: inline-block; margin: 0.5em; text-align: center; }}
 figure img {{ width: 320px; image-rendering: pixelated; border: 1px solid #ccc; }}
+figure.atlas img {{ width: 100%; image-rendering: auto; }}
+figure.atlas {{ display: block; }}
 </style>
 </head>
 <body>
@@ -178,6 +196,33 @@ def metrics_table(run: Run) -> str:
         body.append("<tr>" + "".join(cells) + "</tr>")
     return (f"<table id='metrics'><thead><tr>{head}</tr></thead>"
             f"<tbody>{''.join(body)}</tbody></table>")
+
+
+def failure_atlas(run: Run, n: int) -> str:
+    """The failure atlas figures as embedded PNGs (a note when the scans are not there)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lidar_iris_eval.plotting.atlas import build_failures
+    from lidar_iris_eval.plotting.figures import open_run_sequence
+
+    figures = build_failures(run, n, open_run_sequence)
+    if not figures:
+        return ("<div id='failure-atlas'><p>Not drawn: the run's scans could not be opened "
+                "(see the warning printed).</p></div>")
+    parts = []
+    for key, fig in figures.items():
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format="png", dpi=ATLAS_DPI)
+        plt.close(fig)
+        data = base64.b64encode(buffer.getvalue()).decode("ascii")
+        name = html.escape(key.removeprefix("failures_"))
+        parts.append(f"<figure class='atlas'><img alt='failure atlas {name}' "
+                     f"src='data:image/png;base64,{data}'><figcaption>{name}</figcaption>"
+                     "</figure>")
+    return "<div id='failure-atlas'>" + "".join(parts) + "</div>"
 
 
 def band_table(run: Run) -> str:
