@@ -93,3 +93,44 @@ def test_multi_limit_reduction_equals_one_limit_at_a_time():
         m1, d1, y1 = _best_in_block(d, y, limits[k])
         assert np.array_equal(m[k], m1) and np.array_equal(dist[k], d1)
         assert np.array_equal(yaw[k], y1, equal_nan=True)
+
+
+def test_show_compare_and_report_display_the_band(seq, tmp_path, capsys):
+    band_dir, plain_dir = tmp_path / "band", tmp_path / "plain"
+    row = _p1(_run(seq, band_dir, capsys, "--protocol", "1", "--convention-band"))["m2dp"]
+    _run(seq, plain_dir, capsys, "--protocol", "1")
+    ap = row["convention_band"]["metrics"]["ap"]
+    code, out, err = run_cli(["show", band_dir], capsys)
+    assert code == 0, err
+    assert "convention band" in out
+    assert f"[{ap['min']:.4f}–{ap['max']:.4f}]" in out
+    code, out, err = run_cli(["show", plain_dir], capsys)
+    assert code == 0 and "convention band" not in out  # old and plain runs: as before
+    code, out, err = run_cli(["compare", plain_dir, band_dir], capsys)
+    assert code == 0, err
+    assert f"[{ap['min']:.4f}–{ap['max']:.4f}]" in out
+    presets = row["convention_band"]["presets"]
+    for name in presets:
+        assert (band_dir / "protocol1" / "m2dp" / f"pr_convention-{name}.csv").is_file()
+    from lidar_iris_eval.plotting import load_run
+    from lidar_iris_eval.plotting.pr import run_curves
+
+    curves = {c.key: c for c in run_curves(load_run(band_dir), 1)}
+    assert curves["m2dp"].band is not None  # the PR figure's shaded spread
+    assert all(c.band is None for c in run_curves(load_run(plain_dir), 1))
+    pytest.importorskip("plotly")
+    code, _, err = run_cli(["report", band_dir, "--failures", "0"], capsys)
+    assert code == 0, err
+    page = (band_dir / "report" / "index.html").read_text()
+    assert "id='convention-band'" in page and f"{len(presets)} conventions" in page
+
+
+def test_edited_band_is_one_error(seq, tmp_path, capsys):
+    from conftest import assert_one_line_error
+
+    out = tmp_path / "band"
+    metrics = _run(seq, out, capsys, "--protocol", "1", "--convention-band")
+    metrics["results"][0]["convention_band"]["metrics"]["ap"]["max"] = 1.5
+    (out / "metrics.json").write_text(json.dumps(metrics))
+    code, _, err = run_cli(["show", out], capsys)
+    assert_one_line_error(code, err, "convention_band.metrics.ap.max")

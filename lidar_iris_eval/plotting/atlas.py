@@ -216,6 +216,10 @@ def atlas_figure(run, descriptor_name: str, cases: list[FailureCase], sequence, 
             ax.plot(positions[[q, j], 0], positions[[q, j], 1], color="#d55e00", linewidth=0.8)
             ax.scatter(positions[q, 0], positions[q, 1], s=10, c="#0072b2", zorder=3)
             ax.scatter(positions[j, 0], positions[j, 1], s=10, c="#d55e00", zorder=3)
+            if shown != j:  # a miss whose best match was another (wrong) frame
+                ax.scatter(positions[shown, 0], positions[shown, 1], s=14, marker="x",
+                           c="0.2", zorder=3, label="method's match")
+                ax.legend(fontsize=5, loc="lower right", frameon=False)
             ax.set_aspect("equal", adjustable="datalim")
             ax.set_xticks([])
             ax.set_yticks([])
