@@ -31,6 +31,8 @@ def main() -> None:
     parser.add_argument("--sequence", type=Path, default=None)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--protocol", type=int, action="append", default=None)
+    parser.add_argument("--cache-dir", type=Path, default=None,
+                        help="descriptor cache (extraction is outside the clocks anyway)")
     args = parser.parse_args()
     from lidar_iris_eval.evaluation.evaluate import evaluate
     from lidar_iris_eval.extract import extract_many
@@ -46,7 +48,12 @@ def main() -> None:
         from lidar_iris_eval.descriptors import get_descriptor
 
         descs = [get_descriptor(name) for name in DESCRIPTORS]
-        dbs = extract_many(seq, descs)
+        cache = None
+        if args.cache_dir is not None:
+            from lidar_iris_eval.cache import DescriptorCache
+
+            cache = DescriptorCache(args.cache_dir)
+        dbs = extract_many(seq, descs, cache=cache)
         protocols = tuple(args.protocol or (1, 2))
         evaluate(seq, descs, protocols, dbs=dbs)  # warm-up: compiled kernels, caches
         times = {False: [], True: []}

@@ -43,7 +43,8 @@ BAND_RULE = ("convention_band of a protocol 1 row: each metric under the run's o
              "('own') and its minimum and maximum over the convention presets that apply to "
              "the run (same pose frame; windows in seconds need scan times; BEVPlace splits "
              "only on their KITTI sequence), with the preset of each extreme; 'values' holds "
-             "every preset's metrics, 'skipped' the presets left out and why. All from one "
+             "every preset's metrics, 'skipped' the presets left out and why, 'notes' why a "
+             "preset's numbers are undefined. All from one "
              "matching pass: each block is reduced under every preset's database limits")
 
 
@@ -128,13 +129,20 @@ def restrict_matches(matches, limits: np.ndarray):
 def score_band(band_matches, positions: np.ndarray, presets, limits: np.ndarray,
                times=None) -> tuple[dict[str, dict], dict[str, PRCurve]]:
     """Each preset's protocol 1 metrics and PR curve from its best matches."""
+    import warnings
+
     from lidar_iris_eval.evaluation.protocol1 import score_protocol1, scoring_rules
 
     values, curves = {}, {}
     for matches, preset, lim in zip(band_matches, presets, limits, strict=True):
         gt = ground_truth_for(positions, preset, times, limits=lim)
-        scored = score_protocol1(matches, positions, gt, **scoring_rules(preset))
+        with warnings.catch_warnings(record=True) as caught:  # kept in the band, not printed
+            warnings.simplefilter("always")
+            scored = score_protocol1(matches, positions, gt, **scoring_rules(preset))
         values[preset.name] = {k: scored.metrics.get(k) for k in BAND_METRICS}
+        notes = [str(w.message) for w in caught]
+        if notes:
+            values[preset.name]["notes"] = notes
         curves[preset.name] = scored.curve
     return values, curves
 
@@ -153,10 +161,14 @@ def band_block(own_row: dict, own_name: str, values: dict[str, dict],
         else:
             entry.update(min=None, max=None, min_preset=None, max_preset=None)
         metrics[key] = entry
-    return {"own_convention": own_name, "presets": list(values), "metrics": metrics,
-            "values": {name: {k: _finite(v.get(k)) for k in BAND_METRICS}
-                       for name, v in values.items()},
-            "skipped": dict(skipped)}
+    out = {"own_convention": own_name, "presets": list(values), "metrics": metrics,
+           "values": {name: {k: _finite(v.get(k)) for k in BAND_METRICS}
+                      for name, v in values.items()},
+           "skipped": dict(skipped)}
+    notes = {name: v["notes"] for name, v in values.items() if v.get("notes")}
+    if notes:  # why a preset's numbers are undefined (e.g. no revisit under its radius)
+        out["notes"] = notes
+    return out
 
 
 def _finite(value):
