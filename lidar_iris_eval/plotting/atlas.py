@@ -23,6 +23,7 @@ that is another one (said in the panel).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -146,6 +147,11 @@ def _bev(ax, query_pts, other_pts, transform, title: str, gid: str) -> None:
                 fontsize=7, color="0.4")
     else:
         moved = other_pts[:, :3] @ transform[:3, :3].T + transform[:3, 3]
+        centre = np.asarray(transform[:2, 3], dtype=np.float64)
+        if np.abs(centre).max() > BEV_RANGE:  # say so rather than show an empty overlay
+            ax.text(0.5, 0.04, f"other scan's origin {np.linalg.norm(centre):.0f} m away, "
+                    "outside the view", ha="center", va="bottom", transform=ax.transAxes,
+                    fontsize=5.5, color="#d55e00")
         ax.scatter(moved[:, 0], moved[:, 1], s=0.2, c="#d55e00", linewidths=0, alpha=0.6,
                    rasterized=True)
     ax.scatter(query_pts[:, 0], query_pts[:, 1], s=0.2, c="#0072b2", linewidths=0, alpha=0.6,
@@ -206,7 +212,11 @@ def atlas_figure(run, descriptor_name: str, cases: list[FailureCase], sequence, 
                     ax = row[col]
                     if found is not None:
                         name, image = found
-                        ax.imshow(image, aspect="auto", cmap="viridis", interpolation="nearest")
+                        image = np.asarray(image, dtype=np.float64)
+                        positive = image[np.isfinite(image) & (image > 0)]
+                        top = float(np.percentile(positive, 99)) if len(positive) else None
+                        ax.imshow(image, aspect="auto", cmap="viridis", interpolation="nearest",
+                                  vmin=0.0, vmax=top or None)
                         ax.set_title(f"{name} {_scan_id(sequence, frame)}", fontsize=6, pad=2)
                     ax.set_xticks([])
                     ax.set_yticks([])
@@ -237,8 +247,12 @@ def atlas_figure(run, descriptor_name: str, cases: list[FailureCase], sequence, 
             sub.suptitle(f"{label} {number}: query {ids[0]} - {ids[1]}; descriptor distance "
                          f"{case.distance:.4g}; {apart:.1f} m apart{err}", fontsize=7.5,
                          x=0.01, ha="left")
+        absent = [label for kind, label in (("fp", "no false positive"),
+                                            ("missed", "no missed revisit query"))
+                  if not any(c.kind == kind for c in cases)]
         fig.suptitle(f"Failure atlas: {style.method_label(descriptor_name)} (blue: query, "
-                     "orange: other scan)", fontsize=9)
+                     "orange: other scan)" + (f"; {', '.join(absent)}" if absent else ""),
+                     fontsize=9)
     return fig
 
 
@@ -266,7 +280,9 @@ def build_failures(run, n: int, open_sequence) -> dict:
     for name in style.in_method_order(run.descriptors(1)):
         preset, params = run.descriptor_params(name)
         try:
-            desc = get_descriptor(name, preset=preset, **params)
+            with warnings.catch_warnings():  # parameter notes were printed by the run itself
+                warnings.simplefilter("ignore")
+                desc = get_descriptor(name, preset=preset, **params)
         except Exception:  # an external or unknown method: views only
             desc = None
         cases = failure_cases(run, name, n)
