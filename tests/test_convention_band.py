@@ -134,3 +134,27 @@ def test_edited_band_is_one_error(seq, tmp_path, capsys):
     (out / "metrics.json").write_text(json.dumps(metrics))
     code, _, err = run_cli(["show", out], capsys)
     assert_one_line_error(code, err, "convention_band.metrics.ap.max")
+
+
+def test_two_stage_band_keeps_only_presets_with_the_same_window(seq, tmp_path, capsys,
+                                                                   monkeypatch):
+    """Retrieval depends on each query's database: a two-stage method's band holds the
+    presets whose windows equal the run's, and those equal separate runs."""
+    from lidar_iris_eval.descriptors import _REGISTRY
+
+    monkeypatch.setitem(_REGISTRY, "toy-objects", "toy_two_stage:ToyObjects")
+
+    def run(out, *extra):
+        code, _, err = run_cli(["eval", seq, "--descriptor", "toy-objects", "--protocol", "1",
+                                "--cache-dir", tmp_path / "cache", "--out", out, "-q", *extra],
+                               capsys)
+        assert code == 0, err
+        return _p1(json.loads((out / "metrics.json").read_text()))["toy-objects"]
+
+    # E = 49 is Scan Context's evaluator's window: same databases, other ground-truth rules
+    band = run(tmp_path / "band", "--exclude", "49", "--convention-band")["convention_band"]
+    assert band["presets"] == ["scancontext-eval"]
+    assert "two-stage" in band["skipped"]["liris"] and "two-stage" in band["skipped"]["logg3d"]
+    separate = run(tmp_path / "sc", "--convention", "scancontext-eval")
+    for key in METRICS:
+        assert band["values"]["scancontext-eval"][key] == pytest.approx(separate[key])
