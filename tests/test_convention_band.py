@@ -158,3 +158,39 @@ def test_two_stage_band_keeps_only_presets_with_the_same_window(seq, tmp_path, c
     separate = run(tmp_path / "sc", "--convention", "scancontext-eval")
     for key in METRICS:
         assert band["values"]["scancontext-eval"][key] == pytest.approx(separate[key])
+
+
+def test_distributed_block_paths_give_the_same_band(seq):
+    """The block-task paths (a Dask cluster's) reduce (K, N) limits as the local pass does."""
+    from lidar_iris_eval.descriptors import get_descriptor
+    from lidar_iris_eval.evaluation.band import band_plan
+    from lidar_iris_eval.evaluation.ground_truth import database_limits
+    from lidar_iris_eval.evaluation.protocol2 import protocols_1_and_2
+    from lidar_iris_eval.evaluation.settings import Settings
+    from lidar_iris_eval.executor import SerialExecutor
+    from lidar_iris_eval.extract import extract_many
+    from lidar_iris_eval.io import open_sequence
+    from lidar_iris_eval.matching.blocks import best_matches
+
+    def BlockTasks():  # noqa: N802 - serial, but takes the distributed code paths
+        return SerialExecutor(distributes_blocks=True)
+
+    sequence = open_sequence(seq)
+    desc = get_descriptor("m2dp")
+    db = extract_many(sequence, [desc])[0]
+    settings = Settings()
+    plan = band_plan(sequence, settings, sequence.resolve_pose_frame("camera"))
+    own = database_limits(len(sequence), settings)
+    stacked = np.vstack([own[None, :], plan.limits])
+    local = best_matches(desc, db.descriptors, stacked, 4096)
+    tasks = best_matches(desc, db.descriptors, stacked, 4096, executor=BlockTasks())
+    positions = sequence.positions("camera")
+    p1, _ = protocols_1_and_2(desc, db.descriptors, positions, settings,
+                              band_limits=plan.limits, executor=BlockTasks())
+    for k, (a, b) in enumerate(zip(local, tasks, strict=True)):
+        assert np.array_equal(a.query, b.query) and np.array_equal(a.match, b.match)
+        assert np.array_equal(a.distance, b.distance)
+        one = best_matches(desc, db.descriptors, stacked[k], 4096)  # one limit at a time
+        assert np.array_equal(one.match, a.match) and np.array_equal(one.query, a.query)
+        streamed = p1.matches if k == 0 else p1.band_matches[k - 1]
+        assert np.array_equal(streamed.match, a.match)
