@@ -194,3 +194,30 @@ def test_distributed_block_paths_give_the_same_band(seq):
         assert np.array_equal(one.match, a.match) and np.array_equal(one.query, a.query)
         streamed = p1.matches if k == 0 else p1.band_matches[k - 1]
         assert np.array_equal(streamed.match, a.match)
+
+
+@pytest.mark.parametrize("name, frames, has_bevplace", [("00", 4541, True), ("05", 4541, False),
+                                                         ("00", 3100, False)])
+def test_bevplace_split_applies_only_to_its_kitti_sequence(name, frames, has_bevplace):
+    from types import SimpleNamespace
+
+    from lidar_iris_eval.evaluation.band import band_plan
+    from lidar_iris_eval.evaluation.settings import Settings
+
+    seq = SimpleNamespace(name=name, times=np.arange(frames) * 0.1,
+                          camera_poses=np.zeros((frames, 4, 4)))
+    plan = band_plan(_Sized(seq, frames), Settings(), "camera")
+    names = [p.name for p in plan.presets]
+    assert ("bevplace-00" in names) == has_bevplace
+    assert "bevplace-02" not in names and "contour-context" not in names  # lidar frame
+    for p, lim in zip(plan.presets, plan.limits, strict=True):
+        assert p.pose_frame == "camera" and np.any(lim >= 0)
+
+
+class _Sized:
+    def __init__(self, ns, n):
+        self.__dict__.update(vars(ns))
+        self._n = n
+
+    def __len__(self):
+        return self._n
