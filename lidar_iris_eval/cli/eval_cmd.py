@@ -38,7 +38,7 @@ from lidar_iris_eval.evaluation.evaluate import (
 from lidar_iris_eval.executor import check_scheduler, open_executor
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 from lidar_iris_eval.ownership import check_new_files
-from lidar_iris_eval.runs.table import render_table
+from lidar_iris_eval.runs.table import render_band_table, render_table
 from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, json_ready, write_run
 from lidar_iris_eval.sensors import resolve_sensor
 
@@ -81,6 +81,10 @@ register_flags({
 @click.option("--loops-gap", type=click.IntRange(min=1), default=1, show_default=True,
               help="g2o: an edge is a loop when its vertex ids differ by more than this.")
 @loops_options
+@click.option("--convention-band", is_flag=True,
+              help="Also score protocol 1 under every convention preset that applies to the "
+                   "run (same pose frame), from the same matching pass: each metric's value "
+                   "under the run's convention and its min-max over the presets.")
 @click.option("--ranking", is_flag=True,
               help="Also rank each query's database (Recall@1..25, Recall@1 %, MRR) in a "
                    "within-sequence run: one more matching pass for protocol 1.")
@@ -112,7 +116,7 @@ register_flags({
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
 def command(sequence, protocols, query_path, database_path, align_path, pairs_text, loop_paths,
-            loops_format, loops_index_base, loops_gap, ranking,
+            loops_format, loops_index_base, loops_gap, convention_band, ranking,
             descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
@@ -127,6 +131,11 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         raise LirisError(f"--workers {workers}", "must be at least 1")
     settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
     within = query_path is None and database_path is None and align_path is None
+    single = within and plan is None and len(sequence) == 1 and not loop_paths \
+        and pairs_text is None and seeds is None
+    if convention_band and not single:
+        raise LirisError("--convention-band", "applies to one within-sequence run of "
+                         "descriptors (no --query/--database, --plan, --loops, --pairs, --seeds)")
     if not within:
         _within_sequence_odometry(odometry)
         from lidar_iris_eval.cli.sessions_eval import evaluate_sessions_cli
@@ -209,7 +218,7 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         def run_once(descs):
             return evaluate(seq, descs, protocols, settings, cache=cache, workers=workers,
                             progress=not quiet, executor=executor, loop_settings=loop_settings,
-                            ranking=ranking,
+                            ranking=ranking, convention_band=convention_band,
                             dbs=extract_all(seq, descs, cache, workers, quiet, executor))
 
         if seeds is None:
@@ -235,6 +244,9 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
                               "results": run.rows}))
         return
     click.echo(render_table(run.rows, table_format()))
+    band = render_band_table(run.rows, table_format())
+    if band:
+        click.echo(band, err=table_format() != "table")
     click.echo(  # after a Markdown/LaTeX/CSV table, to stderr: the table stays pasteable
         f"conventions: radius {settings.radius:g} m, exclude "
         + (f"E={settings.exclude} ({settings.exclude_name})" if settings.exclude_seconds is None

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from lidar_iris_eval.runs import FORMATS, conventions_lines, load_run, render_table
+from lidar_iris_eval.runs import (
+    FORMATS,
+    conventions_lines,
+    load_run,
+    render_band_table,
+    render_table,
+)
 from lidar_iris_eval.runs.schema import result_warnings
 
 
@@ -44,7 +50,8 @@ def command(run, fmt, no_conventions):
     loop_table = render_loop_table(loaded.rows, fmt)  # registration recall (issue 23)
     seed_table = render_seed_table(loaded.rows, fmt)  # --seeds: mean [min, max]
     loops_table = render_loops_table(loaded.rows, fmt)  # --loops files (docs/loops.md)
-    for extra in (loops_table, loop_table, seed_table):
+    band_table = render_band_table(loaded.rows, fmt)  # --convention-band: own [min–max]
+    for extra in (loops_table, loop_table, seed_table, band_table):
         if extra:
             click.echo("")
             click.echo(extra)

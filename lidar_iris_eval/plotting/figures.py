@@ -216,8 +216,11 @@ def build_iris(run: Run, frame: int | None = None) -> tuple[Figure | None, Figur
 
 # ---- drivers ----------------------------------------------------------------------------
 def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = "png",
-             frame: int | None = None) -> list[Path]:
+             frame: int | None = None, failures: int | None = None) -> list[Path]:
     """Write every figure of one run; returns the files written.
+
+    ``failures=N`` adds the failure atlas (:mod:`~lidar_iris_eval.plotting.atlas`):
+    ``failures_<descriptor>`` per protocol 1 method.
 
     ``out_dir`` defaults to ``<run_dir>/figures``; figures already there are
     replaced (they are derived outputs). In any other folder, replacing an
@@ -230,6 +233,8 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
     if frame is not None and not 0 <= frame < run.n_frames:
         raise LirisError(f"--frame {frame}",
                          f"frame index out of range (run has {run.n_frames} frames)")
+    if failures is not None and failures < 1:
+        raise LirisError(f"--failures {failures}", "must be at least 1")
     default_out = out_dir is None
     out = Path(run.path / "figures" if default_out else out_dir)
     from lidar_iris_eval.plotting.recall import build_recall
@@ -253,6 +258,10 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
         figures["iris_frame"], figures["iris_alignment"] = build_iris(run, frame)
     figures["recall"] = build_recall(run)  # with --ranking
     figures["loops"], figures["posegraph"] = build_loops(run)  # a --loops run
+    if failures is not None:
+        from lidar_iris_eval.plotting.atlas import build_failures
+
+        figures.update(build_failures(run, failures, _open_run_sequence))
     return _write(figures, out, fmt, warn_overwrite=not default_out)
 
 
@@ -278,7 +287,7 @@ def plot_compare(run_dirs: Sequence[str | Path], out_dir: str | Path | None = No
 
 
 def figure_path(out_dir: Path, key: str, fmt: str) -> Path:
-    return Path(out_dir) / f"{FILE_STEMS[key]}.{fmt}"
+    return Path(out_dir) / f"{FILE_STEMS.get(key, key)}.{fmt}"
 
 
 # ---- helpers --------------------------------------------------------------------------
@@ -337,6 +346,10 @@ def _open_run_sequence(run: Run):
              "LiDAR Iris figures skipped")
         return None
     return sequence
+
+
+#: the run's sequence for figures that need the scans (the failure atlas of ``liris report``)
+open_run_sequence = _open_run_sequence
 
 
 def _recorded_reader_options(run: Run) -> dict:
