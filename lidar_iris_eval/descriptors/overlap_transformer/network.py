@@ -182,8 +182,9 @@ def column_tokens(w: dict, images: np.ndarray) -> np.ndarray:
         h_out = (x.shape[2] - k) // s + 1
         # rows h*s + i for each tap i: (B, W, H_out, k, C) against (k, C, out)
         taps = np.stack([x[:, :, i: i + s * (h_out - 1) + 1: s, :] for i in range(k)], axis=3)
-        flat = taps.reshape(*taps.shape[:3], k * c_in)
-        x = _relu(flat @ kern.transpose(2, 1, 0).reshape(k * c_in, c_out))
+        flat = taps.reshape(-1, k * c_in)  # one 2-D product (a 4-D one loops over small ones)
+        out = flat @ np.ascontiguousarray(kern.transpose(2, 1, 0).reshape(k * c_in, c_out))
+        x = _relu(out).reshape(*taps.shape[:3], c_out)
     if x.shape[2] != 1:
         raise ValueError(f"range images of height {images.shape[2]} leave {x.shape[2]} rows "
                          "after the convolutions; the network needs 1 (64 rows)")
