@@ -87,7 +87,7 @@ class OverlapTransformer(Descriptor):
 
     name = "overlap-transformer"
     label = "OverlapTransformer"
-    color = "#8C564B"
+    color = "#882255"
     params_type = OverlapTransformerParams
     symmetric = True
 
