@@ -168,6 +168,19 @@ def test_hand_built_checkpoint_round_trips_without_torch(tmp_path):
         assert np.array_equal(sd[key.removeprefix("module.")], arr)
 
 
+def test_hand_built_model_checkpoint_gives_the_same_descriptors(tmp_path):
+    """A whole model written without torch reads back to the very same network."""
+    weights = network.random_weights(seed=2)
+    path = tmp_path / "model.pth.tar"
+    hand_checkpoint(path, {f"module.{k}": v for k, v in weights.items()})
+    from_file = get_descriptor("overlap-transformer", weights=str(path))
+    generated = get_descriptor("overlap-transformer", seed=2)
+    img = np.random.default_rng(4).uniform(0, 50, (2, 64, 900)).astype(np.float32)
+    assert np.array_equal(from_file.compute_images(img), generated.compute_images(img))
+    assert from_file.cache_token() != generated.cache_token()  # file bytes vs arrays
+    assert from_file.run_info()["weights"] == "model.pth.tar"
+
+
 def test_torch_saved_checkpoint_round_trips(tmp_path):
     torch = pytest.importorskip("torch")
     from lidar_iris_eval.descriptors.overlap_transformer import torch_net
