@@ -283,3 +283,19 @@ def test_eval_runs_both_protocols(tmp_path, capsys):
     assert {r["protocol"] for r in rows} == {1, 2}
     assert all(r["weights"] == "random-init" and r["weights_trained"] is False for r in rows)
     assert all(0.0 < r["f1_max"] <= 1.0 for r in rows)
+
+
+@pytest.mark.parametrize("metric", ["l2sq", "l2", "cosine"])
+def test_distances_agree_and_the_method_pickles(metric):
+    desc = get_descriptor("overlap-transformer", metric=metric)
+    rng = np.random.default_rng(9)
+    d = rng.normal(size=(5, 256))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    clone = pickle.loads(pickle.dumps(desc))  # worker processes (bench, dask) get a copy
+    full, _ = clone.pairwise(d, d)
+    for i in range(5):
+        assert np.array_equal(desc.distances(d[i], d)[0], full[i])
+        assert desc.distance(d[i], d[3])[0] == full[i, 3]
+    cos = d @ d.T
+    expected = {"l2sq": 2 - 2 * cos, "l2": np.sqrt(np.maximum(2 - 2 * cos, 0)), "cosine": 1 - cos}
+    assert np.allclose(full, expected[metric], atol=1e-9)

@@ -17,6 +17,7 @@ MODEL_CARD.md. The SHA-256 of the weights enters the cache key.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,17 +70,20 @@ class OverlapTransformerParams:
     metric: str = "l2sq"
 
 
-def _rows_kernel(metric: str):
-    def kernel(query: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        q = np.asarray(query, dtype=np.float64)
-        r = np.asarray(rows, dtype=np.float64)
-        if metric == "cosine":
-            return 1.0 - np.sum(q * r, axis=-1)
-        diff = r - q
-        diff *= diff
-        sq = np.sum(diff, axis=-1)
-        return sq if metric == "l2sq" else np.sqrt(sq)
-    return kernel
+def _rows(query: np.ndarray, rows: np.ndarray, metric: str = "l2sq") -> np.ndarray:
+    """Distance of ``query`` to each row of ``rows`` (any leading shape), in float64.
+
+    The single-pair, batched and pairwise distances all reduce through this, so
+    they agree bit for bit.
+    """
+    q = np.asarray(query, dtype=np.float64)
+    r = np.asarray(rows, dtype=np.float64)
+    if metric == "cosine":
+        return 1.0 - np.sum(q * r, axis=-1)
+    diff = r - q
+    diff *= diff
+    sq = np.sum(diff, axis=-1)
+    return sq if metric == "l2sq" else np.sqrt(sq)
 
 
 class OverlapTransformer(Descriptor):
@@ -108,7 +112,13 @@ class OverlapTransformer(Descriptor):
             raise LirisError(source, f"fov_up ({p.fov_up}) must exceed fov_down ({p.fov_down})")
         self._weights: dict | None = None
         self._digest: str | None = None
-        self._kernel = _rows_kernel(p.metric)
+        self._kernel = functools.partial(_rows, metric=p.metric)
+
+    def __getstate__(self) -> dict:
+        """Picklable (worker processes) without the 74 MB of weights: reloaded on use."""
+        state = dict(self.__dict__)
+        state["_weights"] = None
+        return state
 
     # ------------------------------------------------------------------ weights
 
