@@ -106,8 +106,8 @@ class OverlapTransformer(Descriptor):
             raise LirisError(source, f"metric must be one of {', '.join(_METRICS)}, "
                              f"got {p.metric!r}")
         if network.conv_height(p.height) != 1 or p.width < 1:
-            raise LirisError(source, f"the network needs 64-row range images (height 64-65), "
-                             f"got {p.height} x {p.width}")
+            raise LirisError(source, f"the eleven convolutions must reduce the image height "
+                             f"to one row (64 does), got {p.height} x {p.width}")
         if not p.fov_up > p.fov_down:
             raise LirisError(source, f"fov_up ({p.fov_up}) must exceed fov_down ({p.fov_down})")
         self._weights: dict | None = None
