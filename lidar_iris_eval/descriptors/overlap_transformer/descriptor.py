@@ -28,7 +28,7 @@ import numpy as np
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.overlap_transformer import checkpoint, network, projection
 from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, warn
 
 RANDOM_INIT = "random-init"
 _METRICS = ("l2sq", "l2", "cosine")
@@ -134,6 +134,10 @@ class OverlapTransformer(Descriptor):
         """The network's float32 weights by name (loaded once)."""
         if self._weights is None:
             if not self.trained:
+                warn("overlap-transformer.weights=random-init",
+                     "deterministic random weights, NOT a trained model (scores are not "
+                     "OverlapTransformer's); give a checkpoint with "
+                     "--param overlap-transformer.weights=PATH")
                 w = network.random_weights(self.params.seed)
                 self._digest = network.weights_digest(w)
             else:
