@@ -191,12 +191,19 @@ def test_torch_saved_checkpoint_round_trips(tmp_path):
     net(torch.rand(1, 1, 64, 900)).sum().backward()
     opt.step()
     path = tmp_path / "pretrained_overlap_transformer.pth.tar"
-    torch.save({"epoch": 1, "state_dict": net.state_dict(), "optimizer": opt.state_dict()}, path)
-    obj = checkpoint.read_checkpoint(path)
-    sd = checkpoint.state_dict(obj)
-    for key, value in net.state_dict().items():
-        assert np.array_equal(sd[key], value.numpy()), key
-    assert obj["epoch"] == 1 and set(obj["optimizer"]["state"][0]) >= {"exp_avg", "step"}
+    saved = {"epoch": 1, "state_dict": net.state_dict(), "optimizer": opt.state_dict(),
+             "view": torch.arange(12.0).reshape(3, 4).t(), "half": torch.ones(2).bfloat16()}
+    legacy = tmp_path / "legacy.pth.tar"  # the pre-1.6 format, still written on request
+    torch.save(saved, legacy, _use_new_zipfile_serialization=False)
+    torch.save(saved, path)
+    for file in (path, legacy):
+        obj = checkpoint.read_checkpoint(file)
+        sd = checkpoint.state_dict(obj)
+        for key, value in net.state_dict().items():
+            assert np.array_equal(sd[key], value.numpy()), (file.name, key)
+        assert obj["epoch"] == 1 and set(obj["optimizer"]["state"][0]) >= {"exp_avg", "step"}
+        assert np.array_equal(obj["view"], np.arange(12.0).reshape(3, 4).T)
+        assert np.array_equal(obj["half"], [1.0, 1.0])
     # through the method: same descriptors as the torch model
     desc = get_descriptor("overlap-transformer", preset="paper", weights=str(path))
     img = np.random.default_rng(2).uniform(0, 40, (1, 64, 900)).astype(np.float32)
@@ -223,6 +230,10 @@ def test_malicious_checkpoints_are_refused(tmp_path):
     hand_checkpoint(evil, {"a": np.zeros(2, np.float32)}, extra_pickle=_op_str("x") + payload)
     with pytest.raises(checkpoint.CheckpointError, match="posix.system|os.system|nt.system"):
         checkpoint.read_checkpoint(evil)
+    bare = tmp_path / "evil-legacy.pth"  # a bare pickle is read as the legacy format
+    bare.write_bytes(pickle.dumps(_Boom(marker), protocol=2))
+    with pytest.raises(checkpoint.CheckpointError, match="refused"):
+        checkpoint.read_checkpoint(bare)
     assert not marker.exists()
     try:
         import torch

@@ -1,5 +1,8 @@
 """Reading a PyTorch checkpoint (``.pth`` / ``.pth.tar``) without PyTorch.
 
+Both formats of ``torch.save`` are read: the zip archive (PyTorch >= 1.6, below)
+and the older legacy stream (:func:`_read_legacy`).
+
 Since PyTorch 1.6, ``torch.save`` writes a zip archive: ``<root>/data.pkl`` (a
 pickle of the saved object), ``<root>/data/<key>`` (the raw bytes of each
 tensor storage) and small text records (``version``, ``byteorder``). In the
@@ -44,28 +47,24 @@ class _StorageType:
 
 
 class _Storage:
-    """One storage of the archive, read on first use."""
+    """One storage of the checkpoint; its bytes come from ``read`` (called on first use)."""
 
-    def __init__(self, archive: zipfile.ZipFile, root: str, key: str, kind: _StorageType,
-                 numel: int, big_endian: bool):
-        self.archive, self.root, self.key, self.kind = archive, root, key, kind
+    def __init__(self, read, key: str, kind: _StorageType, numel: int, big_endian: bool):
+        self.read, self.key, self.kind = read, key, kind
         self.numel, self.big_endian = int(numel), big_endian
         self._array = None
 
     def array(self) -> np.ndarray:
         if self._array is None:
-            name = f"{self.root}/data/{self.key}"
-            try:
-                raw = self.archive.read(name)
-            except KeyError:
-                raise CheckpointError(f"the archive has no storage {name}") from None
+            raw = self.read(self.key)
             dtype = _STORAGES[self.kind.name]
             order = ">" if self.big_endian else "<"
             if dtype == "bfloat16":  # the upper half of a float32
                 half = np.frombuffer(raw, dtype=order + "u2").astype(np.uint32) << 16
                 arr = half.view(np.float32)
             else:
-                arr = np.frombuffer(raw, dtype=np.dtype(dtype).newbyteorder(order))
+                usable = len(raw) - len(raw) % np.dtype(dtype).itemsize
+                arr = np.frombuffer(raw[:usable], dtype=np.dtype(dtype).newbyteorder(order))
             if arr.size < self.numel:
                 raise CheckpointError(f"storage {self.key} holds {arr.size} elements, "
                                       f"the pickle says {self.numel} (truncated file?)")
@@ -73,8 +72,23 @@ class _Storage:
         return self._array
 
 
-def _rebuild_tensor(storage, offset, size, stride, *_rest) -> np.ndarray:
+class _Pending:
+    """A tensor record, turned into an array once every storage can be read."""
+
+    def __init__(self, storage, offset, size, stride):
+        self.storage, self.offset, self.size, self.stride = storage, offset, size, stride
+
+
+def _rebuild_tensor(storage, offset, size, stride, *_rest) -> _Pending:
+    """The record of ``torch._utils._rebuild_tensor_v2`` (read later by :func:`_tensor`)."""
+    if not isinstance(storage, _Storage):
+        raise CheckpointError("a tensor whose storage is not a storage of the archive")
+    return _Pending(storage, offset, size, stride)
+
+
+def _tensor(pending: _Pending) -> np.ndarray:
     """A NumPy copy of the tensor ``storage[offset:]`` viewed with ``size`` and ``stride``."""
+    storage, offset, size, stride = pending.storage, pending.offset, pending.size, pending.stride
     if not isinstance(storage, _Storage):
         raise CheckpointError("a tensor whose storage is not a storage of the archive")
     flat = storage.array()
@@ -110,9 +124,9 @@ _ALLOWED = {
 
 
 class _RestrictedUnpickler(pickle.Unpickler):
-    def __init__(self, data: bytes, archive: zipfile.ZipFile, root: str, big_endian: bool):
-        super().__init__(io.BytesIO(data))
-        self.archive, self.root, self.big_endian = archive, root, big_endian
+    def __init__(self, stream, read, big_endian: bool):
+        super().__init__(stream)
+        self.read, self.big_endian = read, big_endian
         self.storages: dict[str, _Storage] = {}
 
     def find_class(self, module: str, name: str):
@@ -124,34 +138,70 @@ class _RestrictedUnpickler(pickle.Unpickler):
                               "containers; refused without running it")
 
     def persistent_load(self, pid):
-        if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"
+        # zip: ("storage", type, key, location, numel); legacy adds a view record (None)
+        if not (isinstance(pid, tuple) and len(pid) in (5, 6) and pid[0] == "storage"
                 and isinstance(pid[1], _StorageType)):
             raise CheckpointError(f"an unknown persistent record {str(pid)[:60]!r}")
-        _, kind, key, _location, numel = pid
-        key = str(key)
+        if len(pid) == 6 and pid[5] is not None:
+            raise CheckpointError("a storage view (legacy format); re-save with a current torch")
+        kind, key, numel = pid[1], str(pid[2]), pid[4]
         if key not in self.storages:
-            self.storages[key] = _Storage(self.archive, self.root, key, kind, numel,
-                                          self.big_endian)
+            self.storages[key] = _Storage(self.read, key, kind, numel, self.big_endian)
         return self.storages[key]
+
+
+#: the first pickle of a legacy (pre-1.6, non-zip) torch.save file
+_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
+
+
+def _read_legacy(data: bytes) -> object:
+    """A legacy ``torch.save`` file: magic, protocol, system info, the object, the storage
+    keys, then each storage as an int64 element count and its bytes, in key order."""
+    stream = io.BytesIO(data)
+    blobs: dict[str, bytes] = {}
+    header = []
+    for _ in range(3):
+        header.append(_RestrictedUnpickler(stream, blobs.__getitem__, False).load())
+    if header[0] != _LEGACY_MAGIC or not isinstance(header[2], dict):
+        raise CheckpointError("not a file written by torch.save")
+    big = not header[2].get("little_endian", True)
+    unpickler = _RestrictedUnpickler(stream, blobs.__getitem__, big)
+    obj = unpickler.load()
+    keys = _RestrictedUnpickler(stream, blobs.__getitem__, False).load()
+    if not isinstance(keys, list):
+        raise CheckpointError("no storage list after the object")
+    for key in keys:
+        key = str(key)
+        storage = unpickler.storages.get(key)
+        if storage is None:
+            raise CheckpointError(f"storage {key} is listed but never used")
+        count = stream.read(8)
+        if len(count) < 8:
+            raise CheckpointError(f"storage {key} is missing (truncated file?)")
+        n = int.from_bytes(count, "big" if big else "little", signed=True)
+        size = n * (2 if storage.kind.name == "BFloat16Storage"
+                    else np.dtype(_STORAGES[storage.kind.name]).itemsize)
+        blobs[key] = stream.read(size)
+        if len(blobs[key]) < size:
+            raise CheckpointError(f"storage {key} is truncated")
+    return _materialise(obj)
 
 
 def read_checkpoint(path: str | Path) -> object:
     """The object a ``torch.save`` zip checkpoint holds, with tensors as NumPy arrays.
 
-    Raises :class:`CheckpointError` for anything else (a legacy pre-1.6 file,
-    a truncated archive, a pickle naming functions or classes beyond tensors
+    Also reads the legacy (pre-1.6, non-zip) format. Raises :class:`CheckpointError`
+    for anything else (a truncated file, a pickle naming functions or classes beyond tensors
     and ``OrderedDict``) and :class:`OSError` when the file cannot be read.
     """
     path = Path(path)
-    with open(path, "rb") as fh:
-        head = fh.read(4)
-    if head[:2] != b"PK":
-        what = ("a legacy (pre-1.6) torch file; re-save it with a current torch, "
-                "torch.save(torch.load(f), f)") if head[:1] == b"\x80" else \
-            "not a zip archive written by torch.save"
-        raise CheckpointError(what)
+    data = path.read_bytes()
     try:
-        with zipfile.ZipFile(path) as archive:
+        if data[:1] == b"\x80":  # a bare pickle: the legacy format
+            return _read_legacy(data)
+        if data[:2] != b"PK":
+            raise CheckpointError("not a zip archive written by torch.save")
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
             pickles = [n for n in archive.namelist() if n.endswith("/data.pkl")
                        and n.count("/") == 1]
             if len(pickles) != 1:
@@ -160,21 +210,28 @@ def read_checkpoint(path: str | Path) -> object:
             names = set(archive.namelist())
             big = (f"{root}/byteorder" in names
                    and archive.read(f"{root}/byteorder").strip() == b"big")
-            unpickler = _RestrictedUnpickler(archive.read(pickles[0]), archive, root, big)
-            obj = unpickler.load()
-            for storage in unpickler.storages.values():  # read while the archive is open
-                storage.array()
-            return _materialise(obj)
+
+            def read(key: str) -> bytes:
+                try:
+                    return archive.read(f"{root}/data/{key}")
+                except KeyError:
+                    raise CheckpointError(f"the archive has no storage {root}/data/{key}") \
+                        from None
+
+            unpickler = _RestrictedUnpickler(io.BytesIO(archive.read(pickles[0])), read, big)
+            return _materialise(unpickler.load())  # reads the storages while open
     except CheckpointError:
         raise
     except (zipfile.BadZipFile, EOFError, pickle.UnpicklingError, ValueError, TypeError,
-            AttributeError, IndexError, KeyError) as err:
+            AttributeError, IndexError, KeyError, OverflowError) as err:
         raise CheckpointError(f"unreadable checkpoint ({type(err).__name__}: "
                               f"{str(err)[:80]})") from None
 
 
 def _materialise(obj):
     """Plain containers all the way down (no archive references left)."""
+    if isinstance(obj, _Pending):
+        return _tensor(obj)
     if isinstance(obj, dict):
         return {k: _materialise(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
