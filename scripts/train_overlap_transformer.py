@@ -67,6 +67,8 @@ def main(argv=None) -> None:
     ap.add_argument("--lr", type=float, default=1e-4)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--threshold", type=float, default=0.3)
+    ap.add_argument("--init", choices=("random-init", "torch"), default="random-init",
+                    help="start from the shipped random weights or torch's default init")
     args = ap.parse_args(argv)
 
     import torch
@@ -88,7 +90,11 @@ def main(argv=None) -> None:
     print(f"{len(queries)} training queries in {len(worlds)} worlds", flush=True)
 
     net = torch_net.OverlapTransformerNet()
-    torch_net.load_numpy(net, network.random_weights(0))  # the shipped start
+    if args.init == "random-init":
+        torch_net.load_numpy(net, network.random_weights(0))  # the shipped start
+    else:
+        torch.manual_seed(args.first_seed)
+        net = torch_net.OverlapTransformerNet()
     opt = torch.optim.Adam(net.parameters(), args.lr)
     ckpt = args.work / "checkpoint.pth.tar"
     step = 0
