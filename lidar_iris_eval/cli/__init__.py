@@ -69,7 +69,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 @click.version_option(__version__, prog_name="liris")
 def cli() -> None:
     """Evaluate LiDAR loop-closure descriptors (LiDAR Iris, Scan Context, M2DP, ESF,
-    GOSMatch, ESM) under protocol 1 (best match) and protocol 2 (all pairs).
+    GOSMatch, ESM, OverlapTransformer) under protocol 1 (best match) and protocol 2 (all pairs).
 
     Start with `liris simulate OUT` and `liris eval OUT -d lidar-iris`.
     """

@@ -23,6 +23,7 @@ _REGISTRY: dict[str, str] = {
     "esf": "lidar_iris_eval.descriptors.esf:ESF",
     "gosmatch": "lidar_iris_eval.descriptors.gosmatch:GOSMatch",
     "esm": "lidar_iris_eval.descriptors.esm:ESM",
+    "overlap-transformer": "lidar_iris_eval.descriptors.overlap_transformer:OverlapTransformer",
     # optional extra "mapclosures"; without it -d mapclosures is one error line
     "mapclosures": "lidar_iris_eval.descriptors.mapclosures:MapClosures",
 }
