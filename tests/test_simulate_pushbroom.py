@@ -110,3 +110,23 @@ def test_bad_lengths_are_named():
     q, s = line_poses(poses, 0.5)
     np.testing.assert_allclose(s, [0, 0.5, 1.0, 1.5, 2.0])
     np.testing.assert_allclose(q[:, 0, 3], s)
+
+
+def test_simulate_pushbroom_writes_one_swathe_per_frame(tmp_path, capsys):
+    from conftest import assert_one_line_error, run_cli
+
+    out = tmp_path / "pb"
+    code, text, err = run_cli(["simulate", out, "--world", "forest", "--frames", "40",
+                               "--azimuth-steps", "64", "--pushbroom", "6", "-q"], capsys)
+    assert code == 0, err
+    assert "push-broom swathes of 6 m" in text
+    travelled = np.linalg.norm(np.diff(build_scenario(resolve_config(
+        "forest", {"frames": 40})).poses[:, :3, 3], axis=0), axis=1).sum()
+    scans = sorted((out / "velodyne").glob("*.bin"))
+    assert len(scans) == int(travelled // 6.0)
+    poses = np.loadtxt(out / "poses.txt").reshape(-1, 3, 4)
+    steps = np.linalg.norm(np.diff(poses[:, :, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 6.0, atol=0.15)  # one swathe every 6 m travelled
+    code, _, err = run_cli(["simulate", tmp_path / "bad", "--world", "forest", "--pushbroom",
+                            "0.5", "-q"], capsys)
+    assert_one_line_error(code, err, "--pushbroom")

@@ -228,6 +228,12 @@ class SimReport:
         camera = ("" if self.revisit_queries_camera is None else
                   f"; {self.revisit_queries_camera} with camera-frame poses, the default of "
                   "liris gt/eval")
+        if self.config.pushbroom is not None:  # frames are swathes (simulate.pushbroom)
+            length = self.config.pushbroom
+            return (f"wrote {self.frames} push-broom swathes of {length:g} m (lms151 line "
+                    f"scanner, {route} route, {self.points / max(self.frames, 1):.0f} "
+                    f"points/swathe, {self.revisit_queries} revisit queries at E=1, "
+                    f"{length / 2:g} m) to {self.out_dir} in {self.seconds:.1f} s")
         return (
             f"wrote {self.frames} scans ({self.config.sensor}, {route} route, "
             f"{self.points / max(self.frames, 1):.0f} points/scan, {self.revisit_queries} "
@@ -259,7 +265,12 @@ def run_simulation(
     work = Path(tempfile.mkdtemp(prefix=temp_prefix(out_dir.name or "sim"), dir=out_dir.parent))
     try:
         prepare_out_dir(work, overwrite=True)
-        report = write_scenario(out_dir, scen, preset, start, progress, work=work)
+        if cfg.pushbroom is not None:
+            from lidar_iris_eval.simulate.pushbroom import write_swathes
+
+            report = write_swathes(out_dir, scen, preset, start, progress, work)
+        else:
+            report = write_scenario(out_dir, scen, preset, start, progress, work=work)
         publish(work, out_dir)
     except LirisError as err:  # name the file the user asked for, not its temporary folder
         source = err.source or ""

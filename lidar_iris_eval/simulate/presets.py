@@ -43,6 +43,10 @@ class SimConfig:
     #: undergrowth (:mod:`~lidar_iris_eval.simulate.nature`); left out of the manifest of
     #: the urban worlds
     season: str = "leaf-on"
+    #: push-broom mode (:mod:`~lidar_iris_eval.simulate.pushbroom`): each frame is the swathe
+    #: of an LMS151-like line scanner over this many metres travelled (the ESM paper: 22 m);
+    #: None: the spinning sensor's scans. Left out of the manifest when None.
+    pushbroom: float | None = None
 
 
 PRESETS: dict[str, dict] = {
@@ -144,6 +148,9 @@ def _check(cfg: SimConfig) -> None:
     if cfg.world_style not in styles:
         raise LirisError(None, f"unknown world style {cfg.world_style!r}; choose from "
                                f"{', '.join(styles)}")
+    if cfg.pushbroom is not None and not 1.0 <= cfg.pushbroom <= 500.0:
+        raise LirisError("--pushbroom", f"swathe length must be within 1..500 m, got "
+                                        f"{cfg.pushbroom}")
     if cfg.season not in SEASONS:
         raise LirisError("--season", f"must be one of {', '.join(SEASONS)}, got {cfg.season!r}")
     if cfg.world_style in NATURE_STYLES:
@@ -161,6 +168,8 @@ def manifest_config(cfg: SimConfig) -> dict:
     out = dataclasses.asdict(cfg)
     if out["world_style"] in URBAN_STYLES:
         del out["season"]
+    if out["pushbroom"] is None:
+        del out["pushbroom"]
     if out["world_style"] == "default":
         del out["world_style"]
     return out

@@ -66,6 +66,7 @@ class Swathe:
 
     points: np.ndarray  # (N, 3) float32, platform frame at ``pose``
     label: np.ndarray  # (N,) uint32 SemanticKITTI class | instance << 16
+    intensity: np.ndarray  # (N,) float32
     row: np.ndarray  # (N,) row of the world's primitive hit, -1 for ground
     pose: np.ndarray  # (4, 4) world-from-platform of the reference (last) line
     line_poses: np.ndarray  # (L, 4, 4) world-from-platform of every line
@@ -112,7 +113,7 @@ def swathes(scenario, swathe_length: float = PAPER_SWATHE_LENGTH, line_spacing: 
         lines = np.nonzero((s >= w * swathe_length) & (s < (w + 1) * swathe_length))[0]
         ref = poses[lines[-1]]
         to_ref = np.linalg.inv(ref)
-        pts, lab, rows, line_of = [], [], [], []
+        pts, lab, inten, rows, line_of = [], [], [], [], []
         for li in lines:
             rng = None if seed is None else np.random.default_rng([seed, w, int(li)])
             pose = poses[li] @ m
@@ -122,8 +123,62 @@ def swathes(scenario, swathe_length: float = PAPER_SWATHE_LENGTH, line_spacing: 
             rel = to_ref @ pose
             pts.append(scan.points.astype(np.float64) @ rel[:3, :3].T + rel[:3, 3])
             lab.append(scan.label)
+            inten.append(scan.intensity)
             rows.append(np.where(scan.row >= 0, near[np.maximum(scan.row, 0)], -1))
             line_of.append(np.full(len(scan.points), li - lines[0], np.int64))
         out.append(Swathe(np.concatenate(pts).astype(np.float32), np.concatenate(lab),
-                          np.concatenate(rows), ref, poses[lines], np.concatenate(line_of)))
+                          np.concatenate(inten), np.concatenate(rows), ref, poses[lines],
+                          np.concatenate(line_of)))
     return out
+
+
+#: metres between two lines in ``liris simulate --pushbroom`` (50 Hz at 2.5 m/s)
+LINE_SPACING = 0.05
+
+
+def write_swathes(out_dir, scen, preset, start: float, progress: bool, work):
+    """``liris simulate --pushbroom L``: every swathe of ``L`` metres is one frame (KITTI
+    layout: points in the platform frame of the swathe's last line, whose pose is the
+    frame's; labels and object ids as for scans). Static world only (no moving cars).
+    Returns the :class:`~lidar_iris_eval.simulate.pipeline.SimReport`."""
+    import dataclasses
+    import time
+
+    from lidar_iris_eval import __version__
+    from lidar_iris_eval.simulate.pipeline import SimReport, _class_names, revisit_queries
+    from lidar_iris_eval.simulate.presets import manifest_config
+    from lidar_iris_eval.simulate.writer import write_metadata, write_scan
+
+    cfg = scen.config
+    found = swathes(scen, float(cfg.pushbroom), LINE_SPACING, seed=cfg.seed)
+    if len(found) < 2:
+        raise LirisError("--pushbroom", f"the route of {len(scen.poses)} frames gives "
+                                        f"{len(found)} swathe(s) of {cfg.pushbroom:g} m; "
+                                        "give more --frames or a shorter swathe")
+    objects = np.concatenate([scen.world.objects, np.zeros(1, np.uint32)])
+    total = 0
+    for i, sw in enumerate(found):
+        ids = objects[np.where(sw.row < 0, len(objects) - 1, sw.row)]
+        write_scan(work, i, sw.points, sw.intensity, sw.label, ids)
+        total += len(sw.points)
+    poses = np.stack([sw.pose for sw in found])
+    revisits = revisit_queries(poses[:, :3, 3], exclude=1, radius=float(cfg.pushbroom) / 2)
+    camera = scen.tr @ poses @ np.linalg.inv(scen.tr)
+    revisits_camera = revisit_queries(camera[:, :3, 3], exclude=1,
+                                      radius=float(cfg.pushbroom) / 2)
+    manifest = {
+        "generator": "liris simulate --pushbroom", "version": __version__, "preset": preset,
+        "seed": cfg.seed, "config": manifest_config(cfg),
+        "sensor": dataclasses.asdict(LMS151),
+        "pushbroom": {"swathe_length_m": float(cfg.pushbroom), "line_spacing_m": LINE_SPACING,
+                      "mount": dataclasses.asdict(PushBroomMount()),
+                      "frame": "each frame is one swathe, in the platform frame of its last "
+                               "line; its pose is that line's platform pose"},
+        "frames": len(found), "points": total,
+        "revisit_queries_E1_half_swathe": int(len(revisits)),
+        "classes": {str(k): v for k, v in _class_names(cfg.world_style).items()},
+        "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
+    }
+    write_metadata(work, poses, scen.tr, manifest)
+    return SimReport(out_dir, cfg, len(found), total, len(revisits), time.perf_counter() - start,
+                     int(len(revisits_camera)))

@@ -164,6 +164,8 @@ def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
 
     out_dir = Path(out_dir)
     cfg = with_frames(cfg)
+    if cfg.pushbroom is not None:
+        raise LirisError("--pushbroom", "writes one sequence; not with --sessions")
     names = session_sensors(cfg, sessions, tuple(sensors))
     season_of = session_seasons(cfg, sessions, tuple(seasons))
     check_out_dir(out_dir, overwrite, sessions=True)
