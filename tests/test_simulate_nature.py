@@ -93,6 +93,29 @@ def test_the_platform_pitches_and_rolls_on_slopes():
         assert not inside.any()
 
 
+def _off_normal_deg(scen):
+    """Angle between the sensor's up axis and the terrain normal under it, per frame."""
+    g = scen.world.ground
+    _, gx, gy = g.elevation(scen.poses[:, 0, 3], scen.poses[:, 1, 3])
+    n = np.stack([-gx, -gy, np.ones_like(gx)], 1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((n * scen.poses[:, :3, 2]).sum(1), -1, 1)))
+
+
+def test_handheld_platform_is_lower_slower_and_sways():
+    ugv = build_scenario(resolve_config("forest", {"frames": 120}))
+    hand = build_scenario(resolve_config("forest", {"frames": 120, "platform": "handheld"}))
+    for scen, height in ((ugv, 1.8), (hand, 1.5)):  # hdl32's mount, the walker's 1.5 m
+        g = scen.world.ground.surface_height(scen.poses[:, 0, 3], scen.poses[:, 1, 3])
+        # the sensor sits ``height`` along the tilted up axis: a little less vertically
+        assert np.median(scen.poses[:, 2, 3] - g) == pytest.approx(height, abs=0.05)
+    step_u = np.median(np.linalg.norm(np.diff(ugv.poses[:, :3, 3], axis=0), axis=1))
+    step_h = np.median(np.linalg.norm(np.diff(hand.poses[:, :3, 3], axis=0), axis=1))
+    assert step_h < 0.7 * step_u
+    assert np.median(_off_normal_deg(hand)) > 2 * np.median(_off_normal_deg(ugv))
+    np.testing.assert_array_equal(ugv.world.ground.height, hand.world.ground.height)
+
+
 def test_trees_have_trunks_branches_and_crowns():
     world = build_scenario(resolve_config("forest", {"frames": 10})).world
     p, objects = world.prims, world.objects
@@ -151,6 +174,8 @@ def test_leaf_off_session_of_one_forest(tmp_path, capsys):
     (["--world", "tiny-mixed", "--sessions", "2", "--session-season", "leaf-off"],
      "--session-season"),
     (["--world", "forest", "--session-season", "leaf-off"], "--session-season"),
+    (["--world", "tiny-mixed", "--platform", "handheld"], "--platform"),
+    (["--world", "forest", "--trajectory", "poses.txt"], "--trajectory"),
 ])
 def test_bad_season_options_are_one_error_line(tmp_path, capsys, args, source):
     code, out, err = run_cli(["simulate", tmp_path / "x", *args, "-q"], capsys)

@@ -47,14 +47,17 @@ from lidar_iris_eval.simulate.trajectories import ROUTES
               type=click.Choice(["leaf-on", "leaf-off"]),
               help="Season of session 1, 2, ... of a natural world (repeat; the last one "
               "repeats; default: session 0's).")
+@click.option("--platform", type=click.Choice(["ugv", "handheld"]),
+              help="Natural worlds: a ground robot (the preset's) or a walking operator "
+              "(1.5 m, 0.3 m a frame, smooth roll and pitch sway of 3 deg).")
 @click.option("--pushbroom", type=float, metavar="METRES",
               help="Push-broom mode: every frame is the swathe of an LMS151-like 2-D line "
               "scanner (270 deg, tilted) over this many metres travelled (the ESM paper: 22).")
 @click.option("--overwrite", is_flag=True, help="Replace the contents of a non-empty OUT_DIR.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_cars, trajectory,
-            calib, sessions, session_sensors, season, session_seasons, pushbroom, overwrite,
-            quiet):
+            calib, sessions, session_sensors, season, session_seasons, platform, pushbroom,
+            overwrite, quiet):
     """Simulate a LiDAR sequence with exact ground truth into OUT_DIR.
 
     Writes velodyne/*.bin, labels/*.label (SemanticKITTI), poses.txt (camera
@@ -67,6 +70,7 @@ def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_
         moving_cars=moving_cars,
         trajectory=None if trajectory is None else str(trajectory),
         calib=None if calib is None else str(calib), season=season, pushbroom=pushbroom,
+        platform=platform,
     )
     cfg = resolve_config(preset, overrides)
     if sessions != 1 or session_sensors or session_seasons:

@@ -93,6 +93,24 @@ class NatureParams:
     newton_steps: int = 6
 
 
+#: platforms of ``SimConfig.platform``
+PLATFORMS = ("ugv", "handheld")
+
+
+@dataclass(frozen=True)
+class Handheld:
+    """A walking operator: low, slow, swaying (``--platform handheld``)."""
+
+    mount_height: float = 1.5  # sensor above the ground (m), whatever the sensor preset says
+    step: float = 0.3  # metres a frame (3 m/s at 10 Hz would be running: a brisk walk at 0.1 s
+    #                    frames is 0.15; 0.3 keeps a lap of the small grid within ~250 frames)
+    sway_deg: float = 3.0  # roll and pitch, 1 sigma, smooth over ``sway_frames``
+    sway_frames: float = 6.0
+    heading_noise_deg: float = 4.0
+
+
+HANDHELD = Handheld()
+
 FOREST = NatureParams(kind="forest")
 PARK = NatureParams(
     kind="park", trail_half_width=1.5, relief=0.3, relief_scale=30.0, roughness=0.03,

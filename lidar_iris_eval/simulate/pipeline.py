@@ -192,10 +192,25 @@ def _nature_scenario(cfg: SimConfig, session: int, sensor_name: str | None) -> S
     corners = [(i + 1, j + 1) for i, j in route_corners(cfg.route, a, b, laps=1 + cfg.frames)]
     rp = RouteParams(lateral_max=cfg.lateral_max, step=p.step, tilt_noise_deg=p.tilt_noise_deg,
                      smoothing=p.smoothing, uturn_radius=p.uturn_radius)
+    handheld = cfg.platform == "handheld"
+    if handheld:
+        from lidar_iris_eval.simulate.nature import HANDHELD as h
+
+        rp = dataclasses.replace(rp, step=h.step, tilt_noise_deg=0.0,
+                                 heading_noise_deg=h.heading_noise_deg)
     waypoints = grid_waypoints(corners, xs, ys, rng_route, rp, cfg.frames * rp.step * 1.3)
     xy, yaw, _ = drive(meander(waypoints), cfg.frames, rng_route, rp)
-    poses = poses_on_ground(world.ground, xy, yaw, sensor.mount_height, rng_route,
-                            rp.tilt_noise_deg)
+    poses = poses_on_ground(world.ground, xy, yaw, h.mount_height if handheld else
+                            sensor.mount_height, rng_route, rp.tilt_noise_deg)
+    if handheld:  # smooth sway: roll and pitch about the sensor
+        from scipy.spatial.transform import Rotation
+
+        from lidar_iris_eval.simulate.trajectories import _smooth_noise
+
+        angles = np.radians(h.sway_deg) * np.stack(
+            [_smooth_noise(rng_route, len(poses), h.sway_frames) for _ in range(2)], 1)
+        sway = Rotation.from_euler("xy", angles).as_matrix()
+        poses[:, :3, :3] = poses[:, :3, :3] @ sway
     return Scenario(cfg, sensor, world, poses, None, default_tr())
 
 

@@ -47,6 +47,10 @@ class SimConfig:
     #: of an LMS151-like line scanner over this many metres travelled (the ESM paper: 22 m);
     #: None: the spinning sensor's scans. Left out of the manifest when None.
     pushbroom: float | None = None
+    #: natural worlds: who carries the sensor; None or "ugv": the preset's ground robot (slow,
+    #: pitch and roll from the slopes); "handheld": walking (see ``simulate.nature.HANDHELD``).
+    #: Left out of the manifest when None.
+    platform: str | None = None
 
 
 PRESETS: dict[str, dict] = {
@@ -159,6 +163,15 @@ def _check(cfg: SimConfig) -> None:
                                              "around its own trail network; give an urban world")
     elif cfg.season != "leaf-on":
         raise LirisError("--season", "only the natural worlds (forest, park) have seasons")
+    if cfg.platform is not None:
+        from lidar_iris_eval.simulate.nature import PLATFORMS
+
+        if cfg.platform not in PLATFORMS:
+            raise LirisError("--platform", f"must be one of {', '.join(PLATFORMS)}, got "
+                                           f"{cfg.platform!r}")
+        if cfg.world_style not in NATURE_STYLES:
+            raise LirisError("--platform", "only the natural worlds (forest, park) have "
+                                           "platforms")
 
 
 def manifest_config(cfg: SimConfig) -> dict:
@@ -170,6 +183,8 @@ def manifest_config(cfg: SimConfig) -> dict:
         del out["season"]
     if out["pushbroom"] is None:
         del out["pushbroom"]
+    if out["platform"] is None:
+        del out["platform"]
     if out["world_style"] == "default":
         del out["world_style"]
     return out
