@@ -16,17 +16,19 @@ from lidar_iris_eval.simulate.nature import NATURE_STYLES
 from lidar_iris_eval.simulate.raycast import BOX, CYLINDER, ELLIPSOID
 from lidar_iris_eval.simulate.sensors import simulate_scan
 
-#: (preset, season, frames) of the golden fingerprints of the natural worlds
-GOLDEN = {"forest": ("forest", "leaf-on", 6), "forest-leaf-off": ("forest", "leaf-off", 6),
-          "park": ("park", "leaf-on", 6)}
+#: (preset, options) of the golden fingerprints of the natural worlds (and push-broom swathes)
+GOLDEN = {"forest": ("forest", dict(frames=6)),
+          "forest-leaf-off": ("forest", dict(frames=6, season="leaf-off")),
+          "park": ("park", dict(frames=6)),
+          "forest-pushbroom": ("forest", dict(frames=20, azimuth_steps=64, pushbroom=3.0))}
 #: rewrite with ``python tests/test_simulate_nature.py`` only for an intended change
 GOLDEN_FILE = Path(__file__).parent / "data" / "simulate_golden_nature.npz"
 
 
 @pytest.mark.parametrize("name", sorted(GOLDEN))
 def test_natural_world_output_is_unchanged(tmp_path, name):
-    preset, season, frames = GOLDEN[name]
-    got = fingerprint(simulate_sequence(tmp_path / "seq", preset, frames=frames, season=season))
+    preset, options = GOLDEN[name]
+    got = fingerprint(simulate_sequence(tmp_path / "seq", preset, **options))
     with np.load(GOLDEN_FILE) as golden:
         expected = {key: golden[f"{name}/{key}"] for key in got}
     assert list(got["digests"]) == list(expected["digests"])
@@ -193,9 +195,9 @@ if __name__ == "__main__":  # maintainer: rewrite the golden file after an inten
     import tempfile
 
     arrays = {}
-    for name, (preset, season, frames) in GOLDEN.items():
+    for name, (preset, options) in GOLDEN.items():
         with tempfile.TemporaryDirectory() as tmp:
-            out = simulate_sequence(Path(tmp) / "seq", preset, frames=frames, season=season)
+            out = simulate_sequence(Path(tmp) / "seq", preset, **options)
             for key, value in fingerprint(out).items():
                 arrays[f"{name}/{key}"] = value
     np.savez_compressed(GOLDEN_FILE, **arrays)
