@@ -40,10 +40,24 @@ from lidar_iris_eval.simulate.trajectories import ROUTES
               type=click.Choice(sorted(SENSORS)),
               help="Sensor of session 1, 2, ... (repeat; the last one repeats; default: the "
               "preset's).")
+@click.option("--season", type=click.Choice(["leaf-on", "leaf-off"]),
+              help="Natural worlds (forest, park): leaf-on or leaf-off crowns and undergrowth "
+              "(default: the preset's, leaf-on).")
+@click.option("--session-season", "session_seasons", multiple=True,
+              type=click.Choice(["leaf-on", "leaf-off"]),
+              help="Season of session 1, 2, ... of a natural world (repeat; the last one "
+              "repeats; default: session 0's).")
+@click.option("--platform", type=click.Choice(["ugv", "handheld"]),
+              help="Natural worlds: a ground robot (the preset's) or a walking operator "
+              "(1.5 m, 0.3 m a frame, smooth roll and pitch sway of 3 deg).")
+@click.option("--pushbroom", type=float, metavar="METRES",
+              help="Push-broom mode: every frame is the swathe of an LMS151-like 2-D line "
+              "scanner (270 deg, tilted) over this many metres travelled (the ESM paper: 22).")
 @click.option("--overwrite", is_flag=True, help="Replace the contents of a non-empty OUT_DIR.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_cars, trajectory,
-            calib, sessions, session_sensors, overwrite, quiet):
+            calib, sessions, session_sensors, season, session_seasons, platform, pushbroom,
+            overwrite, quiet):
     """Simulate a LiDAR sequence with exact ground truth into OUT_DIR.
 
     Writes velodyne/*.bin, labels/*.label (SemanticKITTI), poses.txt (camera
@@ -55,14 +69,15 @@ def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_
         frames=frames, sensor=sensor, route=route, azimuth_steps=azimuth_steps, seed=seed,
         moving_cars=moving_cars,
         trajectory=None if trajectory is None else str(trajectory),
-        calib=None if calib is None else str(calib),
+        calib=None if calib is None else str(calib), season=season, pushbroom=pushbroom,
+        platform=platform,
     )
     cfg = resolve_config(preset, overrides)
-    if sessions != 1 or session_sensors:
+    if sessions != 1 or session_sensors or session_seasons:
         from lidar_iris_eval.simulate.sessions import run_sessions
 
         report = run_sessions(out_dir, cfg, sessions, tuple(session_sensors), overwrite,
-                              not quiet, preset)
+                              not quiet, preset, seasons=tuple(session_seasons))
         click.echo(report.summary())
         return
     report = run_simulation(out_dir, cfg, overwrite=overwrite, progress=not quiet, preset=preset)

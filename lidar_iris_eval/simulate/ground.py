@@ -35,6 +35,10 @@ class Ground:
     region_cell: float
     region: np.ndarray  # (my, mx) uint8
     curb: float = 0.12
+    #: Newton steps of the ray-ground intersection after the tangent-plane guess; 2 is
+    #: enough for the gentle urban grades (and keeps those worlds byte-identical), the
+    #: rougher natural terrain (:mod:`~lidar_iris_eval.simulate.nature`) takes more
+    newton_steps: int = 2
 
     def elevation(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
         """Road-surface height and its gradient ``(z, dz/dx, dz/dy)`` at (x, y)."""
@@ -96,12 +100,13 @@ def cast_ground(
         return t_out, reg_out, nrm_out
     d = dirs[cand]
     t = t[cand]
-    for it in range(3):
+    steps = ground.newton_steps
+    for it in range(steps + 1):
         p = origin + t[:, None] * d
         z, gx, gy = ground.elevation(p[:, 0], p[:, 1])
         f = p[:, 2] - z
         df = d[:, 2] - gx * d[:, 0] - gy * d[:, 1]
-        if it < 2:
+        if it < steps:
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = t - f / df
     ok = (np.abs(f) < 1e-4) & (t > 0) & (df < 0) & (t <= max_range + 1.0)

@@ -15,6 +15,7 @@ SIDEWALK = 48
 BUILDING = 50
 FENCE = 51
 OTHER_STRUCTURE = 52  # street furniture; only in the dense world style
+OTHER_OBJECT = 99  # rocks and benches; only in the natural worlds
 VEGETATION = 70
 TRUNK = 71
 TERRAIN = 72
@@ -39,6 +40,12 @@ CLASS_NAMES: dict[int, str] = {
 #: classes only the dense world style uses (kept out of :data:`CLASS_NAMES`, which every
 #: manifest lists, so the manifests of the older presets stay byte-identical)
 DENSE_CLASS_NAMES: dict[int, str] = {**CLASS_NAMES, OTHER_STRUCTURE: "other-structure"}
+#: classes of the natural worlds (``forest``, ``park``; :mod:`~lidar_iris_eval.simulate.nature`):
+#: the trail or path is "sidewalk", the forest floor and lawns "terrain"
+NATURE_CLASS_NAMES: dict[int, str] = {
+    SIDEWALK: "sidewalk", BUILDING: "building", VEGETATION: "vegetation", TRUNK: "trunk",
+    TERRAIN: "terrain", POLE: "pole", OTHER_OBJECT: "other-object",
+}
 
 #: class id -> base reflectivity in [0, 1].
 REFLECTIVITY: dict[int, float] = {
@@ -48,6 +55,7 @@ REFLECTIVITY: dict[int, float] = {
     BUILDING: 0.35,
     FENCE: 0.30,
     OTHER_STRUCTURE: 0.35,
+    OTHER_OBJECT: 0.30,
     VEGETATION: 0.45,
     TRUNK: 0.35,
     TERRAIN: 0.40,

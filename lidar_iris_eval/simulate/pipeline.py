@@ -126,6 +126,10 @@ def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None, sess
     (lane offsets, speed and tilt noise), other moving cars, optionally
     another sensor (``sensor_name``). Session 0 is exactly the preset's sequence.
     """
+    from lidar_iris_eval.simulate.nature import NATURE_STYLES
+
+    if cfg.world_style in NATURE_STYLES:
+        return _nature_scenario(cfg, session, sensor_name)
     wp = world_params if world_params is not None else style_params(cfg.world_style)
     sensor = get_sensor(sensor_name or cfg.sensor, cfg.azimuth_steps)
     # the world does not depend on the session's sensor (trajectory worlds take the
@@ -165,6 +169,51 @@ def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None, sess
     return Scenario(cfg, sensor, world, poses, traffic, tr)
 
 
+def _nature_scenario(cfg: SimConfig, session: int, sensor_name: str | None) -> Scenario:
+    """A forest or park (:mod:`~lidar_iris_eval.simulate.nature`): the street-grid route on
+    bent trails, driven slowly; the same random streams as the urban worlds."""
+    from lidar_iris_eval.simulate.nature import (
+        Meander,
+        build_nature_world,
+        nature_params,
+        trail_lines,
+    )
+
+    p = nature_params(cfg.world_style)
+    sensor = get_sensor(sensor_name or cfg.sensor, cfg.azimuth_steps)
+    rng_world = np.random.default_rng([cfg.seed, _WORLD])
+    rng_route = np.random.default_rng(stream_key(cfg.seed, _ROUTE, session))
+    a, b = cfg.blocks
+    xs, ys = street_grid(rng_world, a + 2, b + 2, cfg.block_size)
+    meander = Meander.draw(rng_world, p)
+    lines = trail_lines(xs, ys, meander, 30.0)
+    nodes = meander(np.array([[x, y] for x in xs for y in ys]))
+    world = build_nature_world(lines, nodes, rng_world, p, cfg.season)
+    corners = [(i + 1, j + 1) for i, j in route_corners(cfg.route, a, b, laps=1 + cfg.frames)]
+    rp = RouteParams(lateral_max=cfg.lateral_max, step=p.step, tilt_noise_deg=p.tilt_noise_deg,
+                     smoothing=p.smoothing, uturn_radius=p.uturn_radius)
+    handheld = cfg.platform == "handheld"
+    if handheld:
+        from lidar_iris_eval.simulate.nature import HANDHELD as h
+
+        rp = dataclasses.replace(rp, step=h.step, tilt_noise_deg=0.0,
+                                 heading_noise_deg=h.heading_noise_deg)
+    waypoints = grid_waypoints(corners, xs, ys, rng_route, rp, cfg.frames * rp.step * 1.3)
+    xy, yaw, _ = drive(meander(waypoints), cfg.frames, rng_route, rp)
+    poses = poses_on_ground(world.ground, xy, yaw, h.mount_height if handheld else
+                            sensor.mount_height, rng_route, rp.tilt_noise_deg)
+    if handheld:  # smooth sway: roll and pitch about the sensor
+        from scipy.spatial.transform import Rotation
+
+        from lidar_iris_eval.simulate.trajectories import _smooth_noise
+
+        angles = np.radians(h.sway_deg) * np.stack(
+            [_smooth_noise(rng_route, len(poses), h.sway_frames) for _ in range(2)], 1)
+        sway = Rotation.from_euler("xy", angles).as_matrix()
+        poses[:, :3, :3] = poses[:, :3, :3] @ sway
+    return Scenario(cfg, sensor, world, poses, None, default_tr())
+
+
 def revisit_queries(positions: np.ndarray, exclude: int = 30, radius: float = 4.0) -> np.ndarray:
     """Indices i with some j <= i - ``exclude`` within ``radius`` (3-D distance)."""
     tree = cKDTree(positions)
@@ -194,6 +243,12 @@ class SimReport:
         camera = ("" if self.revisit_queries_camera is None else
                   f"; {self.revisit_queries_camera} with camera-frame poses, the default of "
                   "liris gt/eval")
+        if self.config.pushbroom is not None:  # frames are swathes (simulate.pushbroom)
+            length = self.config.pushbroom
+            return (f"wrote {self.frames} push-broom swathes of {length:g} m (lms151 line "
+                    f"scanner, {route} route, {self.points / max(self.frames, 1):.0f} "
+                    f"points/swathe, {self.revisit_queries} revisit queries at E=1, "
+                    f"{length / 2:g} m) to {self.out_dir} in {self.seconds:.1f} s")
         return (
             f"wrote {self.frames} scans ({self.config.sensor}, {route} route, "
             f"{self.points / max(self.frames, 1):.0f} points/scan, {self.revisit_queries} "
@@ -225,7 +280,12 @@ def run_simulation(
     work = Path(tempfile.mkdtemp(prefix=temp_prefix(out_dir.name or "sim"), dir=out_dir.parent))
     try:
         prepare_out_dir(work, overwrite=True)
-        report = write_scenario(out_dir, scen, preset, start, progress, work=work)
+        if cfg.pushbroom is not None:
+            from lidar_iris_eval.simulate.pushbroom import write_swathes
+
+            report = write_swathes(out_dir, scen, preset, start, progress, work)
+        else:
+            report = write_scenario(out_dir, scen, preset, start, progress, work=work)
         publish(work, out_dir)
     except LirisError as err:  # name the file the user asked for, not its temporary folder
         source = err.source or ""
@@ -288,17 +348,30 @@ def write_scenario(
         "revisit_queries_E30_4m": int(len(revisits)),
         "revisit_queries_E30_4m_frame": "lidar",
         "revisit_queries_E30_4m_camera_frame": int(len(revisits_camera)),
-        "classes": {str(k): v for k, v in (labels.CLASS_NAMES if cfg.world_style == "default"
-                                           else labels.DENSE_CLASS_NAMES).items()},
+        "classes": {str(k): v for k, v in _class_names(cfg.world_style).items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
     if cfg.world_style != "default":  # the style's object densities, for the record
-        manifest["world_params"] = dataclasses.asdict(style_params(cfg.world_style))
+        manifest["world_params"] = dataclasses.asdict(_style_params(cfg.world_style))
     if extra:
         manifest.update(extra)
     write_metadata(work, scen.poses, scen.tr, manifest, origin)
     return SimReport(out_dir, cfg, n, total_points, len(revisits), time.perf_counter() - start,
                      int(len(revisits_camera)))
+
+
+def _class_names(style: str) -> dict[int, str]:
+    if style == "default":
+        return labels.CLASS_NAMES
+    if style == "dense":
+        return labels.DENSE_CLASS_NAMES
+    return labels.NATURE_CLASS_NAMES
+
+
+def _style_params(style: str):
+    from lidar_iris_eval.simulate.nature import NATURE_STYLES
+
+    return NATURE_STYLES[style] if style in NATURE_STYLES else style_params(style)
 
 
 def simulate_sequence(

@@ -5,7 +5,8 @@ its values. The ``tiny-*`` presets (about 200 frames, reduced azimuth
 resolution) are for tests and CI, ``small-mixed`` is the CI regression
 sequence (both same- and reverse-direction revisits), ``urban-dense`` drives
 small-mixed's route through a dense urban world (for ESM's segment-based
-evaluation), ``kitti-scale`` matches KITTI 00's 4541 frames for benchmarks.
+evaluation), ``kitti-scale`` matches KITTI 00's 4541 frames for benchmarks;
+``forest`` and ``park`` are the natural worlds (:mod:`~lidar_iris_eval.simulate.nature`).
 """
 
 from __future__ import annotations
@@ -38,6 +39,18 @@ class SimConfig:
     #: ("default": today's world; "dense": :data:`~lidar_iris_eval.simulate.world.DENSE`).
     #: Left out of ``manifest.json`` when "default", so older sequences stay byte-identical.
     world_style: str = "default"
+    #: natural worlds only (``forest``, ``park``): "leaf-on" or "leaf-off" crowns and
+    #: undergrowth (:mod:`~lidar_iris_eval.simulate.nature`); left out of the manifest of
+    #: the urban worlds
+    season: str = "leaf-on"
+    #: push-broom mode (:mod:`~lidar_iris_eval.simulate.pushbroom`): each frame is the swathe
+    #: of an LMS151-like line scanner over this many metres travelled (the ESM paper: 22 m);
+    #: None: the spinning sensor's scans. Left out of the manifest when None.
+    pushbroom: float | None = None
+    #: natural worlds: who carries the sensor; None or "ugv": the preset's ground robot (slow,
+    #: pitch and roll from the slopes); "handheld": walking (see ``simulate.nature.HANDHELD``).
+    #: Left out of the manifest when None.
+    platform: str | None = None
 
 
 PRESETS: dict[str, dict] = {
@@ -62,7 +75,20 @@ PRESETS: dict[str, dict] = {
     # come near real KITTI 00's; docs/esm.md "Segments")
     "urban-dense": dict(frames=400, route="mixed", azimuth_steps=720, seed=21,
                         block_size=(30.0, 38.0), n_moving_cars=2, world_style="dense"),
+    # natural worlds (simulate.nature): a slow platform (0.5-0.6 m a frame, pitch and roll
+    # from the slopes) on a bent trail grid; one lap of the small blocks is about 140
+    # frames, so a 200-frame sequence revisits its start (same direction, then the U-turn
+    # of the mixed route). HDL-32E in the forest (Cornbury Park in the ESM paper),
+    # VLP-16 in the park; no traffic.
+    "forest": dict(frames=200, route="mixed", sensor="hdl32", azimuth_steps=720, seed=41,
+                   block_size=(15.0, 20.0), moving_cars=False, lateral_max=0.3,
+                   world_style="forest"),
+    "park": dict(frames=200, route="mixed", sensor="vlp16", azimuth_steps=900, seed=51,
+                 block_size=(18.0, 24.0), moving_cars=False, lateral_max=0.4,
+                 world_style="park"),
 }
+#: the urban world styles (their manifests leave the season out)
+URBAN_STYLES = ("default", "dense")
 
 
 #: the finest azimuth grid accepted: 0.01 deg (36,000 rays a beam and turn; real sensors
@@ -119,11 +145,33 @@ def _check(cfg: SimConfig) -> None:
         raise LirisError(None, f"lateral_max must be within 0..3 m, got {cfg.lateral_max}")
     if cfg.calib is not None and cfg.trajectory is None:
         raise LirisError("--calib", "only used together with --trajectory")
+    from lidar_iris_eval.simulate.nature import NATURE_STYLES, SEASONS
     from lidar_iris_eval.simulate.world import WORLD_STYLES
 
-    if cfg.world_style not in WORLD_STYLES:
+    styles = [*WORLD_STYLES, *NATURE_STYLES]
+    if cfg.world_style not in styles:
         raise LirisError(None, f"unknown world style {cfg.world_style!r}; choose from "
-                               f"{', '.join(WORLD_STYLES)}")
+                               f"{', '.join(styles)}")
+    if cfg.pushbroom is not None and not 1.0 <= cfg.pushbroom <= 500.0:
+        raise LirisError("--pushbroom", f"swathe length must be within 1..500 m, got "
+                                        f"{cfg.pushbroom}")
+    if cfg.season not in SEASONS:
+        raise LirisError("--season", f"must be one of {', '.join(SEASONS)}, got {cfg.season!r}")
+    if cfg.world_style in NATURE_STYLES:
+        if cfg.trajectory is not None:
+            raise LirisError("--trajectory", f"the natural world {cfg.world_style!r} is built "
+                                             "around its own trail network; give an urban world")
+    elif cfg.season != "leaf-on":
+        raise LirisError("--season", "only the natural worlds (forest, park) have seasons")
+    if cfg.platform is not None:
+        from lidar_iris_eval.simulate.nature import PLATFORMS
+
+        if cfg.platform not in PLATFORMS:
+            raise LirisError("--platform", f"must be one of {', '.join(PLATFORMS)}, got "
+                                           f"{cfg.platform!r}")
+        if cfg.world_style not in NATURE_STYLES:
+            raise LirisError("--platform", "only the natural worlds (forest, park) have "
+                                           "platforms")
 
 
 def manifest_config(cfg: SimConfig) -> dict:
@@ -131,6 +179,12 @@ def manifest_config(cfg: SimConfig) -> dict:
     is "default" (the key is newer than the pinned sequences, whose bytes must not change).
     """
     out = dataclasses.asdict(cfg)
+    if out["world_style"] in URBAN_STYLES:
+        del out["season"]
+    if out["pushbroom"] is None:
+        del out["pushbroom"]
+    if out["platform"] is None:
+        del out["platform"]
     if out["world_style"] == "default":
         del out["world_style"]
     return out

@@ -25,6 +25,7 @@ alignment transform is needed to evaluate one session against another.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass
@@ -132,9 +133,26 @@ def cross_positive_queries(query_xyz: np.ndarray, db_xyz: np.ndarray, radius: fl
     return int(np.count_nonzero(dist < radius))
 
 
+def session_seasons(cfg: SimConfig, sessions: int, seasons: tuple[str, ...]) -> list[str]:
+    """The season of every session of a natural world: ``cfg.season`` for session 0, then
+    ``seasons`` in order (the last one repeats; none given: session 0's)."""
+    if not seasons:
+        return [cfg.season] * sessions
+    if cfg.season is None or cfg.world_style in ("default", "dense"):
+        raise LirisError("--session-season", "only the natural worlds (forest, park) have "
+                                             "seasons")
+    if sessions == 1:
+        raise LirisError("--session-season", "needs --sessions 2 or more")
+    if len(seasons) > sessions - 1:
+        raise LirisError("--session-season",
+                         f"{len(seasons)} seasons given for {sessions - 1} later sessions")
+    return [cfg.season] + [seasons[min(k - 1, len(seasons) - 1)] for k in range(1, sessions)]
+
+
 def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
                  sensors: tuple[str, ...] = (), overwrite: bool = False,
-                 progress: bool = False, preset: str | None = None) -> SessionsReport:
+                 progress: bool = False, preset: str | None = None,
+                 seasons: tuple[str, ...] = ()) -> SessionsReport:
     """Simulate ``sessions`` drives of one world into ``OUT/session<k>``.
 
     Session 0 is exactly what :func:`~lidar_iris_eval.simulate.pipeline.run_simulation`
@@ -146,14 +164,19 @@ def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
 
     out_dir = Path(out_dir)
     cfg = with_frames(cfg)
+    if cfg.pushbroom is not None:
+        raise LirisError("--pushbroom", "writes one sequence; not with --sessions")
     names = session_sensors(cfg, sessions, tuple(sensors))
+    season_of = session_seasons(cfg, sessions, tuple(seasons))
     check_out_dir(out_dir, overwrite, sessions=True)
     start = time.perf_counter()
     origin = None
     rows = []
     camera = []
     for k, sensor in enumerate(names):
-        scen = build_scenario(cfg, session=k, sensor_name=None if k == 0 else sensor)
+        cfg_k = cfg if season_of[k] == cfg.season else dataclasses.replace(cfg,
+                                                                           season=season_of[k])
+        scen = build_scenario(cfg_k, session=k, sensor_name=None if k == 0 else sensor)
         if origin is None:
             origin = scen.poses[0]
         folder = session_dir(out_dir, k)
@@ -167,11 +190,15 @@ def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
             "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), in the "
                                 "frame of session 0's first scan (not identity here)",
         }
+        if seasons and k > 0:  # a natural world: the season is what changes
+            extra["session_changes"] = (f"season ({season_of[k]}), drive, sensor and noise; "
+                                        "the same trees, logs, rocks and terrain")
         report = write_scenario(folder, scen, preset, start, progress, k,
                                 None if k == 0 else origin, extra)
         rel = np.linalg.inv(origin) @ scen.poses
         camera.append((scen.tr @ rel @ np.linalg.inv(scen.tr))[:, :3, 3])
         rows.append({"session": k, "dir": folder.name, "sensor": sensor,
+                     **({"season": season_of[k]} if seasons else {}),
                      "frames": report.frames, "points": report.points,
                      "queries_with_positive_in_session0": None if k == 0 else
                          cross_positive_queries(camera[-1], camera[0], 4.0)})
@@ -188,6 +215,11 @@ def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
                                "closer than 4 m (3-D, camera-frame poses)",
         "sessions": rows,
     }
+    if seasons:  # a natural world: no parked cars; the season changes
+        meta["changes_between_sessions"] = ("the season (leaf-off: no broadleaf foliage, "
+                                            "less and smaller undergrowth), the drive, sensor, "
+                                            "noise; trunks, branches, conifers, logs, rocks "
+                                            "and terrain identical")
     atomic_write(out_dir / "sessions.json",
                  (json.dumps(meta, indent=2, sort_keys=True) + "\n").encode())
     return SessionsReport(out_dir, rows, time.perf_counter() - start)

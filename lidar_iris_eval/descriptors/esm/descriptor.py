@@ -49,7 +49,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor, Verification
-from lidar_iris_eval.descriptors.esm import network
+from lidar_iris_eval.descriptors.esm import network, segmatch
 from lidar_iris_eval.descriptors.esm.local_segments import local_map_clusters, sample_segment
 from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams, segment_scan
 from lidar_iris_eval.descriptors.esm.target_map import (
@@ -64,6 +64,7 @@ from lidar_iris_eval.matching.geometry import prosac_rigid
 
 _GROUND = ("auto", "labels", "height")
 _SOURCES = ("local-map", "scan")
+_SEGMENT_DESCRIPTORS = ("network", "segmatch")
 #: the local-map window when no evaluation binds it to its E (the "paper" E, 30 frames)
 DEFAULT_WINDOW = 30
 
@@ -104,9 +105,13 @@ class ESMParams:
     max_offset: float = 4.0  # "estimate": reject when the nearest frame is farther (m)
     describe: str = "growth"  # embedding cache (tracking.py): "all", "exact" or SegMap's "growth"
     growth: float = 0.1  # "growth": re-describe at >= (1 + growth) x the voxels last described
+    #: the segment descriptor: "network" (ESM's) or "segmatch" (SegMatch's seven eigenvalue
+    #: features, :mod:`.segmatch`; preset ``segmatch``); the rest of the pipeline is shared
+    segment_descriptor: str = "network"
 
     def __post_init__(self) -> None:
         for name, choices in (("source", _SOURCES), ("target_view", TARGET_VIEWS),
+                              ("segment_descriptor", _SEGMENT_DESCRIPTORS),
                               ("describe", DESCRIBE_RULES), ("ground", _GROUND)):
             value = getattr(self, name)
             if value not in choices:
@@ -216,6 +221,8 @@ class ESM(Descriptor):
         embedding-cache rule and its hit rate (metrics.json rows)."""
         info = {**super().run_info(), "weights": self.weights_path.name,
                 "weights_sha256": self.cache_token()}
+        if self.params.segment_descriptor == "segmatch":  # no network runs
+            info.update(weights=None, weights_sha256=None, segment_descriptor="segmatch")
         if self.local_map:
             info["describe_rule"] = self.params.describe
             info["embedding_reuse_rate"] = (round(self._reused, 4) if self._reused is not None
@@ -276,15 +283,31 @@ class ESM(Descriptor):
         t0 = time.thread_time()
         segs = segment_scan(np.asarray(points)[:, :3], labels, self.segment_params)
         t1 = time.thread_time()
-        w, arch = self.weights()
-        emb = network.embed(w, arch, segs.points)
-        q = network.quality(w, emb) if len(emb) else np.zeros(0)
+        emb, q = self.describe_segments(segs.points)
         t2 = time.thread_time()
         self.timing["segmentation"] += t1 - t0
         self.timing["description"] += t2 - t1
         self.timing["scans"] += 1
         return {"embedding": emb.astype(np.float32), "quality": q.astype(np.float64),
                 "centroids": segs.centroids.astype(np.float64)}
+
+    @property
+    def embedding_dim(self) -> int:
+        """Width of a segment descriptor: the network's output, or SegMatch's 7 features."""
+        if self.params.segment_descriptor == "segmatch":
+            return segmatch.DIM
+        return int(self.weights()[1].fc[-1])
+
+    def describe_segments(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(descriptors (S, D) float32, quality (S,))`` of resampled, normalised segments
+        ((S, n_points, 3)): the network's embedding and quality, or SegMatch's features
+        (:mod:`.segmatch`) with quality 1."""
+        if self.params.segment_descriptor == "segmatch":
+            return segmatch.describe_segments(list(batch))
+        w, arch = self.weights()
+        emb = network.embed(w, arch, batch)
+        q = network.quality(w, emb) if len(emb) else np.zeros(0)
+        return emb.astype(np.float32), np.asarray(q, np.float64)
 
     def begin_local_maps(self, start: int) -> None:
         """Start segment tracking afresh (called at the start of every extraction chunk)."""
@@ -313,9 +336,8 @@ class ESM(Descriptor):
         world = np.array([pts[m].mean(axis=0) for m in members]).reshape(-1, 3)
         sizes = np.array([len(m) for m in members], np.int64)
         t1 = time.thread_time()
-        w, arch = self.weights()
         n = len(members)
-        emb = np.zeros((n, arch.fc[-1]), np.float32)
+        emb = np.zeros((n, self.embedding_dim), np.float32)
         q = np.zeros(n, np.float64)
         fresh = np.zeros(n, np.int8)
         # content digests only decide reuse under ``exact`` (tracking.py)
@@ -330,9 +352,12 @@ class ESM(Descriptor):
                 emb[s], q[s] = hit
         todo = np.nonzero(fresh)[0]
         if len(todo):
-            batch = np.stack([sample_segment(pts[members[s]], seg_keys[s], sp) for s in todo])
-            e = network.embed(w, arch, batch)
-            emb[todo], q[todo] = e, network.quality(w, e)
+            if self.params.segment_descriptor == "segmatch":  # every voxel of the segment
+                emb[todo], q[todo] = segmatch.describe_segments([pts[members[s]] for s in todo])
+            else:
+                batch = np.stack([sample_segment(pts[members[s]], seg_keys[s], sp)
+                                  for s in todo])
+                emb[todo], q[todo] = self.describe_segments(batch)
             for s in todo:
                 self.tracker.store(ids[s], int(sizes[s]), digests[s], emb[s], q[s])
         self.tracker.forget_ended(ids)
@@ -363,7 +388,7 @@ class ESM(Descriptor):
             return np.concatenate(parts) if parts else np.zeros((0, width), dtype)
 
         db = ESMDatabase(
-            embedding=flat("embedding", np.float32, 16),
+            embedding=flat("embedding", np.float32, self.embedding_dim),
             quality=flat("quality", np.float64, 1)[:, 0],
             centroids=flat("centroids", np.float64, 3), offsets=offsets,
             frame_of=np.repeat(np.arange(n), sizes),
