@@ -222,3 +222,57 @@ def test_protocols_1_and_2_honours_candidates(tiny_mixed, tmp_path):
     assert p1.metrics["ap"] == alone.metrics["ap"]
     exhaustive = protocol2(desc, stacked, positions, settings.replace(candidates=None))
     assert p2.metrics == exhaustive.metrics
+
+
+# --- D2: a run written through the API with a custom Settings replays with its conventions ------
+
+def test_api_run_with_custom_settings_replays_with_its_conventions(tiny_mixed, tmp_path):
+    import yaml
+
+    from lidar_iris_eval.cli import cli
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate
+    from lidar_iris_eval.runs.reader import load_run
+    from lidar_iris_eval.runs.writer import write_run
+
+    custom = Settings(inclusive_radius=True, not_revisit_radius=10.0, last_frame_query=False)
+    run = evaluate(tiny_mixed, ["scan-context"], protocols=(1,), settings=custom,
+                   cache=tmp_path / "cache")
+    write_run(run, tmp_path / "api")
+    result = CliRunner().invoke(cli, ["eval", "--config", str(tmp_path / "api" / "config.yaml"),
+                                      "--out", str(tmp_path / "replay"), "--cache-dir",
+                                      str(tmp_path / "cache"), "--quiet"])
+    assert result.exit_code == 0, result.output
+    original, replay = load_run(tmp_path / "api"), load_run(tmp_path / "replay")
+    assert replay.gt_settings() == original.gt_settings()
+    assert replay.gt_settings().name == "custom"
+    (row,) = [r for r in replay.rows if r["protocol"] == 1]
+    (expected,) = [r for r in run.rows if r["protocol"] == 1]
+    assert (row["ap"], row["n_queries"]) == (expected["ap"], expected["n_queries"])
+    # the conventions are stored once: the convention block, no flat copy to disagree with it
+    config = yaml.safe_load((tmp_path / "replay" / "config.yaml").read_text())
+    assert not {"radius", "exclude", "distance", "recall_denominator"} & set(config)
+    assert config["convention"]["not_revisit_radius"] == 10.0
+
+
+def test_old_run_without_convention_block_replays_from_flat_keys(tiny_mixed, tmp_path):
+    import yaml
+
+    from lidar_iris_eval.cli import cli
+    from lidar_iris_eval.runs.reader import load_run
+
+    base = ["--cache-dir", str(tmp_path / "cache"), "--quiet"]
+    result = CliRunner().invoke(cli, ["eval", str(tiny_mixed), "-d", "scan-context",
+                                      "--protocol", "1", "--out", str(tmp_path / "new"), *base])
+    assert result.exit_code == 0, result.output
+    config = yaml.safe_load((tmp_path / "new" / "config.yaml").read_text())
+    block = config.pop("convention")
+    config.update(radius=7.5, exclude={"value": 40, "preset": "custom"}, distance="planar",
+                  recall_denominator="accepted", pose_frame=block["pose_frame"])
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "config.yaml").write_text(yaml.safe_dump(config))
+    result = CliRunner().invoke(cli, ["eval", "--config", str(tmp_path / "old"),
+                                      "--out", str(tmp_path / "replay"), *base])
+    assert result.exit_code == 0, result.output
+    s = load_run(tmp_path / "replay").gt_settings()
+    assert (s.radius, s.exclude, s.distance, s.recall_denominator) == (7.5, 40, "planar",
+                                                                         "accepted")

@@ -121,13 +121,7 @@ class Evaluation:
             "descriptors": [{"name": r.descriptor.name, "preset": r.descriptor.preset,
                              "params": params_dict(r.descriptor.params)} for r in self.results],
             "protocols": list(self.protocols),
-            "radius": float(s.radius),
-            "exclude": ({"value": int(s.exclude), "preset": s.exclude_name}
-                        if s.exclude_seconds is None else
-                        {"value": None, "seconds": s.exclude_seconds, "preset": "seconds"}),
-            "recall_denominator": s.recall_denominator,
-            "distance": s.distance,
-            "pose_frame": self.pose_frame,
+            "pose_frame": self.pose_frame,  # the frame used (camera falls back to lidar)
             "candidates": s.candidates,
             "block_pairs": int(s.pair_budget),
             "convention": s.to_dict(),  # Settings.from_dict rebuilds the run's ground truth
@@ -145,17 +139,18 @@ class Evaluation:
     def header(self, config: dict | None = None) -> dict:
         """The metrics.json header: version, host, sequence and every convention."""
         config = self.config() if config is None else config
+        s = self.settings
         return {
             **run_header(self, config),
             "conventions": {
-                "radius": config["radius"],
-                "exclude": config["exclude"]["value"],
-                "exclude_preset": config["exclude"]["preset"],
-                "distance": config["distance"],
-                "pose_frame": config["pose_frame"],
-                "recall_denominator": config["recall_denominator"],
-                "candidates": config["candidates"],
-                "positive": f"ground-truth distance < {config['radius']:g} m",
+                "radius": float(s.radius),
+                "exclude": None if s.exclude_seconds is not None else int(s.exclude),
+                "exclude_preset": s.exclude_name,
+                "distance": s.distance,
+                "pose_frame": self.pose_frame,
+                "recall_denominator": s.recall_denominator,
+                "candidates": s.candidates,
+                "positive": f"ground-truth distance < {float(s.radius):g} m",
                 "threshold_rule": m.THRESHOLD_RULE,
                 "ap": m.AP_DEFINITION,
                 "ep": m.EP_DEFINITION,
