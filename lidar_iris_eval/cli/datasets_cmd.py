@@ -16,7 +16,9 @@ def command(as_json):
     A SEQUENCE is detected from its folder; --dataset NAME (on every command that
     opens a sequence) forces a reader. Formats: docs/datasets.md.
     """
-    from lidar_iris_eval.io.datasets import DATASETS
+    from lidar_iris_eval.io.datasets import all_datasets
+
+    DATASETS = all_datasets(strict=False)  # with the external readers (lidar_iris_eval/plugins.py)
 
     if as_json:
         echo_json([{"name": s.name, "title": s.title, "layout": s.layout,
