@@ -276,3 +276,56 @@ def test_old_run_without_convention_block_replays_from_flat_keys(tiny_mixed, tmp
     s = load_run(tmp_path / "replay").gt_settings()
     assert (s.radius, s.exclude, s.distance, s.recall_denominator) == (7.5, 40, "planar",
                                                                          "accepted")
+
+
+# --- no import circle in the package (simulate/pipeline.py <-> simulate/sessions.py was one) -----
+
+def _circles(modules, imports_of) -> list[list[str]]:
+    """Strongly connected groups of more than one module (Tarjan, iterative)."""
+    index, low, on, stack, found = {}, {}, set(), [], []
+    for root in modules:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(imports_of(root))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on.add(child)
+                    work.append((child, iter(sorted(imports_of(child)))))
+                elif child in on:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                group = []
+                while True:
+                    top = stack.pop()
+                    on.discard(top)
+                    group.append(top)
+                    if top == node:
+                        break
+                if len(group) > 1:
+                    found.append(sorted(group))
+    return found
+
+
+def test_circle_finder_sees_a_circle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _circles(sorted(graph), graph.__getitem__) == [["a", "b", "c"]]
+    assert _circles(["x", "y"], {"x": {"y"}, "y": set()}.__getitem__) == []
+
+
+def test_no_import_circle_in_the_package():
+    grimp = pytest.importorskip("grimp")  # shipped with import-linter (the [test] extra)
+
+    graph = grimp.build_graph("lidar_iris_eval", cache_dir=None)
+    assert _circles(sorted(graph.modules), graph.find_modules_directly_imported_by) == []
