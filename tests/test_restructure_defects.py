@@ -329,3 +329,22 @@ def test_no_import_circle_in_the_package():
 
     graph = grimp.build_graph("lidar_iris_eval", cache_dir=None)
     assert _circles(sorted(graph.modules), graph.find_modules_directly_imported_by) == []
+
+
+# --- item 5: each built-in method's presets sit in its folder ------------------------------------
+
+def test_builtin_presets_sit_in_their_method_folders():
+    from lidar_iris_eval import descriptors
+    from lidar_iris_eval.config import CONFIG_DIR, load_yaml
+    from lidar_iris_eval.errors import LirisError
+
+    assert not (CONFIG_DIR / "descriptors").exists()
+    for name in descriptors._BUILTIN:
+        folder = descriptors.method_folder(name)
+        assert folder is not None and (folder / "presets.yaml").is_file(), name
+        first = next(iter(load_yaml(folder / "presets.yaml")["presets"]))
+        try:
+            built = descriptors.get_descriptor(name)
+        except LirisError:  # an optional extra (mapclosures' backend) not installed
+            continue
+        assert built.preset == first, name

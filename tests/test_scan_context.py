@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lidar_iris_eval import descriptors
 from lidar_iris_eval.config import descriptor_preset_values
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.descriptors.scan_context import (
@@ -211,7 +212,9 @@ def test_params_validation_and_presets():
         ScanContextParams(ring_key="median")
     with pytest.raises(LirisError):
         get_descriptor("scan-context", no_such_key=1)
-    name, _ = descriptor_preset_values("scan-context", None)
+    assert get_descriptor("scan-context").preset == "reference"  # the first preset
+    folder = Path(descriptors.__file__).parent / "scan_context" / "presets.yaml"
+    name, _ = descriptor_preset_values("scan-context", None, path=folder)
     assert name == "reference"
     ref = get_descriptor("scan-context", "reference").params
     assert (ref.rings, ref.sectors, ref.max_radius, ref.lidar_height) == (20, 60, 80.0, 2.0)

@@ -6,7 +6,7 @@ A scan is voxel-downsampled, lifted by the sensor height and binned into
 Two descriptors are compared by ``1 - mean cosine`` over the columns
 (sectors) non-empty in both, minimised over circular column shifts.
 
-Presets (``configs/descriptors/scan-context.yaml``)
+Presets (``lidar_iris_eval/descriptors/scan_context/presets.yaml``)
 ---------------------------------------------------
 ``reference`` (default)
     The authors' C++ (``scancontext_tro/cpp/module/Scancontext``) fed with a
