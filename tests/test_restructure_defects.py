@@ -7,6 +7,7 @@ import runpy
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -348,3 +349,123 @@ def test_builtin_presets_sit_in_their_method_folders():
         except LirisError:  # an optional extra (mapclosures' backend) not installed
             continue
         assert built.preset == first, name
+
+
+# --- D10: one block pass with reducers; the second pass of streamed protocol 2 written once ------
+
+_PASS_MODULES = ("lidar_iris_eval/matching/blocks.py", "lidar_iris_eval/evaluation/streaming_pr.py",
+                 "lidar_iris_eval/evaluation/cross_session.py",
+                 "lidar_iris_eval/evaluation/protocol2.py")
+
+
+def _loops_calling_pairwise(source: str) -> set[str]:
+    """Names of the functions with a for/while loop whose body calls ``*pairwise``."""
+    import ast
+
+    found = set()
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for loop in ast.walk(fn):
+            if not isinstance(loop, (ast.For, ast.While)):
+                continue
+            for node in ast.walk(loop):
+                callee = getattr(node, "func", None) if isinstance(node, ast.Call) else None
+                name = getattr(callee, "attr", None) or getattr(callee, "id", None)
+                if name in ("pairwise", "_pairwise"):
+                    found.add(fn.name)
+    return found
+
+
+def test_loop_finder_sees_a_block_loop():
+    text = "def walk(d, xs):\n    for a in xs:\n        d.pairwise(a, xs)\n"
+    assert _loops_calling_pairwise(text) == {"walk"}
+    assert _loops_calling_pairwise("def f(d, x):\n    return d.pairwise(x, x)\n") == set()
+
+
+def test_one_block_loop():
+    loops = set()
+    for path in _PASS_MODULES:
+        loops |= _loops_calling_pairwise((ROOT / path).read_text())
+    # positive_values: protocol 2's positives, computed before the pass (not a block pass)
+    assert loops == {"block_pass", "positive_values"}
+
+
+class _ShapeDependent:
+    """Distances that change with the batch shape (as float32 batched kernels may): the
+    positives computed before the pass differ from the block values -> a second pass."""
+
+    name = "shape-dependent"
+    symmetric = False
+
+    def pairwise(self, q, db):
+        q, db = np.asarray(q)[:, None], np.asarray(db)[None, :]
+        d = np.abs(q - db) + 1e-3 * (q.shape[0] % 5)
+        return d, np.full(d.shape, np.nan)
+
+
+def test_streamed_second_pass_is_exact_serial_and_distributed():
+    sys.path.insert(0, str(ROOT / "tests"))
+    try:
+        from test_executor import ReversedExecutor
+    finally:
+        sys.path.remove(str(ROOT / "tests"))
+    from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+    from lidar_iris_eval.evaluation.metrics import reduce_curve
+    from lidar_iris_eval.evaluation.protocol2 import score_protocol2
+    from lidar_iris_eval.evaluation.streaming_pr import stream_protocol2
+    from lidar_iris_eval.matching.blocks import affinity_matrix
+
+    rng = np.random.default_rng(5)
+    n = 140
+    descs = np.round(rng.random(n) * 5, 2)
+    t = np.linspace(0, 4 * np.pi, n)
+    gt = compute_ground_truth(np.c_[20 * np.cos(t), np.zeros(n), 20 * np.sin(t)], 4.0, 5)
+    desc, budget = _ShapeDependent(), 1500
+    full, _ = affinity_matrix(desc, descs, None, budget)  # the same blocks: the block values
+    reference = score_protocol2(full, gt)
+    results = []
+    for executor in (None, ReversedExecutor()):
+        with pytest.warns(UserWarning, match="second pass"):
+            affinity, curve, matches = stream_protocol2(desc, descs, gt.pairs,
+                                                        gt.n_positive_pairs, 5, budget,
+                                                        executor=executor, storage="none")
+        assert affinity.passes == 2
+        result = score_protocol2(affinity, gt, curve=curve)
+        ref_curve = reduce_curve(reference.curve)
+        np.testing.assert_array_equal(result.curve.precision, ref_curve.precision)
+        np.testing.assert_array_equal(result.curve.recall, ref_curve.recall)
+        for key in ("ap", "f1_max", "r100p", "ep"):
+            assert result.metrics[key] == reference.metrics[key], key
+        results.append((curve, matches))
+    (c0, m0), (c1, m1) = results
+    np.testing.assert_array_equal(c0.precision, c1.precision)
+    np.testing.assert_array_equal(c0.recall, c1.recall)
+    np.testing.assert_array_equal(m0.match, m1.match)
+    np.testing.assert_array_equal(m0.distance, m1.distance)
+
+
+# --- D7: evaluate._evaluate_one does not branch on the kind of method ------------------------
+
+def test_evaluate_one_leaves_the_kind_to_the_matchers(tiny_mixed, tmp_path, monkeypatch):
+    import inspect
+
+    from lidar_iris_eval.evaluation import evaluate as ev
+
+    assert "two_stage" not in inspect.getsource(ev._evaluate_one)
+    calls = []
+    real = ev.protocols_1_and_2
+    monkeypatch.setattr(ev, "protocols_1_and_2",
+                        lambda *a, **k: calls.append(a[0].name) or real(*a, **k))
+    settings = ev.Settings(candidates=3)
+    both = ev.evaluate(tiny_mixed, ["scan-context"], protocols=(1, 2), settings=settings,
+                       cache=tmp_path / "cache", progress=False)
+    assert calls == ["scan-context"]  # one call; protocols_1_and_2 honours candidates (D1)
+    one = ev.evaluate(tiny_mixed, ["scan-context"], protocols=(1,), settings=settings,
+                      cache=tmp_path / "cache", progress=False)
+    two = ev.evaluate(tiny_mixed, ["scan-context"], protocols=(2,), settings=ev.Settings(),
+                      cache=tmp_path / "cache", progress=False)  # candidates: protocol 1 only
+    by = {r["protocol"]: r for r in both.rows}
+    for key in ("ap", "f1_max", "r100p", "ep"):
+        assert by[1][key] == one.rows[0][key], key
+        assert by[2][key] == two.rows[0][key], key

@@ -333,19 +333,15 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
     common = dict(forward=forward, lidar_poses=lidar_poses, executor=executor)
     with tqdm(total=rows_to_match, desc=f"{desc.name} matching", unit="query",
               file=sys.stderr, disable=not progress, leave=False) as bar:
-        if protocols == (1, 2) and (s.candidates is None or desc.two_stage):
+        if protocols == (1, 2):  # the matchers pick the path from the method and candidates
             p1, p2 = protocols_1_and_2(desc, db.descriptors, positions, s, times=times,
                                        progress=bar.update, **common)
-        else:
-            if 1 in protocols:
-                p1 = protocol1(desc, db.descriptors, positions, s, times=times,
-                               progress=bar.update, **common)
-            if 2 in protocols:
-                # the bar counted protocol 1 already; don't overrun it
-                p2 = protocol2(desc, db.descriptors, positions,
-                               s.replace(candidates=s.candidates if desc.two_stage else None),
-                               progress=None if p1 is not None else bar.update,
-                               executor=executor)
+        elif protocols == (1,):
+            p1 = protocol1(desc, db.descriptors, positions, s, times=times,
+                           progress=bar.update, **common)
+        else:  # candidates is K of a two-stage method; protocol2 ignores it otherwise
+            p2 = protocol2(desc, db.descriptors, positions, s, progress=bar.update,
+                           executor=executor)
     return DescriptorResult(desc, db, p1, p2, _rows(desc, db, p1, p2, s))
 
 
