@@ -469,3 +469,53 @@ def test_evaluate_one_leaves_the_kind_to_the_matchers(tiny_mixed, tmp_path, monk
     for key in ("ap", "f1_max", "r100p", "ep"):
         assert by[1][key] == one.rows[0][key], key
         assert by[2][key] == two.rows[0][key], key
+
+
+# --- item 4: the executor owns the process pool; errors cross processes as LirisError -----------
+
+def _pid_and_sum(offset, a, b):
+    import os
+
+    return os.getpid(), offset + a + b
+
+
+def _fails_in_worker(a):
+    from lidar_iris_eval.errors import LirisError
+
+    raise LirisError(f"scan {a}", "bad points")
+
+
+def test_process_executor_runs_tasks_in_its_pool():
+    import os
+
+    from lidar_iris_eval.executor import ProcessExecutor
+
+    tasks = [(i, 10 * i) for i in range(6)]
+    got = dict(ProcessExecutor(workers=2).imap(_pid_and_sum, tasks, shared=(100,)))
+    assert sorted(got) == list(range(6))
+    assert [got[i][1] for i in range(6)] == [100 + 11 * i for i in range(6)]
+    assert os.getpid() not in {pid for pid, _ in got.values()}  # not in this process
+
+
+def test_errors_cross_the_pool_as_liris_errors():
+    from lidar_iris_eval.errors import LirisError
+    from lidar_iris_eval.executor import ProcessExecutor
+
+    with pytest.raises(LirisError) as info:
+        list(ProcessExecutor(workers=2).imap(_fails_in_worker, [(3,), (4,)]))
+    assert info.value.problem == "bad points" and info.value.source in ("scan 3", "scan 4")
+
+
+def test_extraction_through_the_pool_equals_serial(tiny_mixed, tmp_path):
+    from lidar_iris_eval.executor import ProcessExecutor, SerialExecutor
+    from lidar_iris_eval.extract import extract_many
+    from lidar_iris_eval.io import open_sequence
+
+    seq = open_sequence(tiny_mixed)
+    from lidar_iris_eval.descriptors import get_descriptor
+
+    descs = [get_descriptor("scan-context"), get_descriptor("m2dp")]
+    serial = extract_many(seq, descs, chunk_size=40, executor=SerialExecutor())
+    pooled = extract_many(seq, descs, chunk_size=40, executor=ProcessExecutor(workers=2))
+    for a, b in zip(serial, pooled, strict=True):
+        np.testing.assert_array_equal(a.descriptors, b.descriptors)
