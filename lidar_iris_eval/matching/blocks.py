@@ -96,7 +96,7 @@ def query_blocks(start: int, stop: int, rows: int) -> Iterator[tuple[int, int]]:
         yield a, min(a + rows, stop)
 
 
-def warm_up(descriptor: Descriptor, descriptors, candidates: int | None = None) -> None:
+def warm_up(descriptor: Descriptor, descriptors) -> None:
     """Run the matching kernels once on two descriptors, untimed.
 
     The first call of a numba kernel compiles it (or loads it from numba's
@@ -106,11 +106,7 @@ def warm_up(descriptor: Descriptor, descriptors, candidates: int | None = None) 
     """
     if len(descriptors) < 2:
         return
-    if candidates is None:  # the exhaustive loops: the batched kernel only
-        _pairwise(descriptor, descriptors[:1], descriptors[:2])
-        return
-    descriptor.candidates(descriptors[:1], descriptors[:2], 1)  # the retrieval loop
-    descriptor.distances(descriptors[0], descriptors[:2])
+    _pairwise(descriptor, descriptors[:1], descriptors[:2])
 
 
 def _pairwise(descriptor: Descriptor, queries, database) -> tuple[np.ndarray, np.ndarray]:
