@@ -436,7 +436,6 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
         DEFAULT_PAIR_BUDGET,
         BestInRow,
         block_pass,
-        query_limits,
         row_blocks,
         warm_up,
     )
@@ -462,7 +461,7 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     blocks = row_blocks(n, budget, symmetric)
     count = CountNegatives(StreamingPR(expected, pp.weight), pp, expected, symmetric)
     keep = KeepAffinity(symmetric, n, kind)
-    best = BestInRow(query_limits(n, exclude)) if exclude is not None else None
+    best = BestInRow(n, exclude) if exclude is not None else None  # (K, N): --convention-band
     reducers = ([keep] if kind != "none" else []) + [count] + ([best] if best else [])
     evaluations, seconds = block_pass(descriptor, descriptors, blocks, reducers, executor,
                                       progress)

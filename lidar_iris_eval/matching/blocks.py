@@ -163,6 +163,64 @@ def _best_in_block(
     return match.astype(np.int64), best, best_yaw
 
 
+def _best_under_limits(
+    dist: np.ndarray, yaw: np.ndarray, limits: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_best_in_block` for ``(K, R)`` limits at once: ``(K, R)`` match, distance, yaw.
+
+    One prefix minimum per row serves every limit: the best column ``j <= L``
+    is the prefix minimum at column ``L`` and, ties to the smallest ``j`` as
+    in :func:`_best_in_block`, the last column where the prefix minimum
+    strictly dropped. ``limits[k, r] = -1`` gives no match for that row.
+    """
+    rows, width = dist.shape
+    masked = np.where(np.isnan(dist), np.inf, dist)
+    prefix = np.minimum.accumulate(masked, axis=1) if width else masked
+    dropped = np.empty((rows, width), dtype=bool)
+    if width:
+        dropped[:, 0] = True
+        dropped[:, 1:] = masked[:, 1:] < prefix[:, :-1]
+    where = np.maximum.accumulate(np.where(dropped, np.arange(width)[None, :], 0), axis=1) \
+        if width else np.zeros((rows, 0), dtype=np.int64)
+    lim = np.asarray(limits, dtype=np.int64)
+    ok = lim >= 0
+    col = np.clip(lim, 0, max(width - 1, 0))
+    r = np.broadcast_to(np.arange(rows)[None, :], lim.shape)
+    best = np.where(ok, prefix[r, col], np.inf) if width else np.full(lim.shape, np.inf)
+    match = where[r, col] if width else np.zeros(lim.shape, dtype=np.int64)
+    none = ~np.isfinite(best)
+    best_yaw = np.where(none, np.nan, yaw[r, match] if width else np.nan)
+    match = np.where(none, -1, match)
+    return match.astype(np.int64), best, best_yaw
+
+
+def best_in_block(dist: np.ndarray, yaw: np.ndarray, limits: np.ndarray):
+    """Best matches of a block's rows under ``(R,)`` limits, or ``(K, R)`` limits (band)."""
+    if np.ndim(limits) == 2:
+        return _best_under_limits(dist, yaw, limits)
+    return _best_in_block(dist, yaw, limits)
+
+
+def stack_limits(n_frames: int, window) -> tuple[np.ndarray, bool]:
+    """``(K, N)`` validated limits of ``window`` (E, one ``(N,)`` array or ``(K, N)``
+    arrays) and whether several were given."""
+    if not isinstance(window, (int, np.integer)) and np.ndim(window) == 2:
+        return np.stack([query_limits(n_frames, w) for w in window]), True
+    return query_limits(n_frames, window)[None, :], False
+
+
+def split_matches(stacked: np.ndarray, queries: np.ndarray, match, dist, yaw, seconds,
+                  evaluations, source) -> list[BestMatches]:
+    """Per limit vector ``k``: the :class:`BestMatches` of its own queries
+    (``stacked[k] >= 0``), from ``(K, Q)`` results over the union ``queries``."""
+    out = []
+    for k in range(len(stacked)):
+        own = stacked[k][queries] >= 0
+        out.append(BestMatches(queries[own], match[k][own], dist[k][own], yaw[k][own],
+                               seconds, evaluations, source))
+    return out
+
+
 def _check_exclude(exclude: int) -> None:
     if exclude < 1:
         raise LirisError(option("exclude", exclude), "exclusion window must be at least 1 frame")
@@ -205,33 +263,48 @@ class Reducer:
 
 
 class BestInRow(Reducer):
-    """Protocol 1: the best column ``j <= limits[i]`` of each query row (ties: smallest j)."""
+    """Protocol 1: the best column ``j <= limits[i]`` of each query row (ties: smallest j).
 
-    def __init__(self, limits: np.ndarray):
-        n = len(limits)
-        self.limits = limits
-        self.match = np.full(n, -1, dtype=np.int64)
-        self.dist = np.full(n, np.inf)
-        self.yaw = np.full(n, np.nan)
+    ``window`` is E, ``(N,)`` limits, or ``(K, N)`` limits (``--convention-band``):
+    then every row is reduced under all ``K`` at once (one prefix minimum) and
+    :meth:`result` gives ``K`` :class:`BestMatches`.
+    """
+
+    def __init__(self, n: int, window):
+        self.stacked, self.several = stack_limits(n, window)
+        self.union = self.stacked.max(axis=0)
+        shape = (len(self.stacked), n)
+        self.match = np.full(shape, -1, dtype=np.int64)
+        self.dist = np.full(shape, np.inf)
+        self.yaw = np.full(shape, np.nan)
 
     def part(self, rows, d, y):
-        lim = self.limits[rows]
-        sel = np.flatnonzero(lim >= 0)
+        sel = np.flatnonzero(self.union[rows] >= 0)
         if len(sel) == 0:
             return None
-        if len(sel) == len(rows):
-            return rows, *_best_in_block(d, y, lim)
-        return rows[sel], *_best_in_block(d[sel], y[sel], lim[sel])
+        if len(sel) < len(rows):
+            rows, d, y = rows[sel], d[sel], y[sel]
+        if self.several:
+            return rows, *_best_under_limits(d, y, self.stacked[:, rows])
+        return rows, *_best_in_block(d, y, self.stacked[0, rows])
 
     def merge(self, part) -> None:
         if part is not None:
             rows, match, dist, yaw = part
-            self.match[rows], self.dist[rows], self.yaw[rows] = match, dist, yaw
+            self.match[:, rows], self.dist[:, rows], self.yaw[:, rows] = match, dist, yaw
 
-    def result(self, seconds: float, evaluations: int, source: str) -> BestMatches:
-        queries = np.flatnonzero(self.limits >= 0)
-        return BestMatches(queries, self.match[queries], self.dist[queries], self.yaw[queries],
-                           seconds, evaluations, source)
+    def blocks(self, pair_budget: int) -> list[tuple[np.ndarray, int]]:
+        """Protocol 1's own blocks: runs of queries against what their last one may see."""
+        return [(q, int(self.union[q].max()) + 1)
+                for q in query_row_blocks(self.union, pair_budget)]
+
+    def result(self, seconds: float, evaluations: int, source: str):
+        """The :class:`BestMatches` (a list of ``K`` under ``(K, N)`` limits)."""
+        queries = np.flatnonzero(self.union >= 0)
+        out = split_matches(self.stacked, queries, self.match[:, queries],
+                            self.dist[:, queries], self.yaw[:, queries], seconds,
+                            evaluations, source)
+        return out if self.several else out[0]
 
 
 class StoreMatrix(Reducer):
@@ -336,7 +409,7 @@ def best_matches(
     pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
     executor=None,
-) -> BestMatches:
+):
     """Exhaustive protocol 1 search of each query over its database ``j <= limits[i]``.
 
     ``exclude`` is E (the standard ``j <= i - E``) or the ``(N,)`` per-query
@@ -344,14 +417,16 @@ def best_matches(
     database its last query may see; the few pairs beyond each query's own
     limit are masked out. ``executor`` (:mod:`lidar_iris_eval.executor`), when
     given, runs the blocks (e.g. as Dask tasks); the results do not change.
+
+    ``exclude`` may also be ``(K, N)`` limits (``--convention-band``): one pass
+    over the union of their queries and databases, and a list of ``K``
+    :class:`BestMatches`, each equal to a search under its own limits.
     """
-    limits = query_limits(len(descriptors), exclude)
-    blocks = [(q, int(limits[q].max()) + 1) for q in query_row_blocks(limits, pair_budget)]
+    best = BestInRow(len(descriptors), exclude)
     if executor is None or not executor.distributes_blocks:
         warm_up(descriptor, descriptors)  # compilation is not matching cost
-    best = BestInRow(limits)
-    evaluations, seconds = block_pass(descriptor, descriptors, blocks, [best], executor,
-                                      progress)
+    evaluations, seconds = block_pass(descriptor, descriptors, best.blocks(pair_budget), [best],
+                                      executor, progress)
     return best.result(seconds, evaluations, "exhaustive")
 
 
@@ -366,7 +441,8 @@ def affinity_matrix(
 ) -> tuple[Affinity, BestMatches | None]:
     """The ``(N, N)`` float32 affinity and, when ``exclude`` is given, protocol 1 matches.
 
-    ``exclude`` is E or the per-query limits (:func:`query_limits`).
+    ``exclude`` is E or the per-query limits (:func:`query_limits`), or ``(K, N)``
+    limits: then a list of ``K`` :class:`BestMatches` (see :func:`best_matches`).
 
     A symmetric descriptor is evaluated on the lower triangle only (each block
     of rows ``[a, b)`` against columns ``[0, b)``) and mirrored, so each
@@ -379,10 +455,9 @@ def affinity_matrix(
     stays O(N) plus one block. One :func:`block_pass` with the reducers asked for.
     """
     n = len(descriptors)
-    limits = query_limits(n, exclude) if exclude is not None else None
     symmetric = bool(descriptor.symmetric)
     matrix = StoreMatrix(n, symmetric) if store else None
-    best = BestInRow(limits) if limits is not None else None
+    best = BestInRow(n, exclude) if exclude is not None else None
     reducers = [r for r in (matrix, CallSink(sink) if sink is not None else None, best)
                 if r is not None]
     warm_up(descriptor, descriptors)  # compilation is not matching cost
