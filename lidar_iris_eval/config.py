@@ -1,7 +1,8 @@
 """YAML presets turned into frozen dataclasses; unknown keys are errors.
 
-Descriptor presets live in ``configs/descriptors/<name>.yaml`` (shipped inside
-the package, and linked from the repository root as ``configs/``)::
+Descriptor presets live in each method's folder, ``presets.yaml`` beside its
+class (``lidar_iris_eval/descriptors/lidar_iris/presets.yaml``; an external
+method's beside its module)::
 
     presets:
       paper: {key: value, ...}
@@ -158,7 +159,8 @@ def descriptor_preset_values(
 
     Returns ``(preset_name, values)``. ``preset=None`` picks the file's first preset.
     ``path`` is the method's own ``presets.yaml`` (in its folder), when it has one;
-    otherwise ``configs/descriptors/<name>.yaml``.
+    otherwise ``<package>/configs/descriptors/<name>.yaml`` if present (no method ships
+    one there any more; without a file the preset is ``default`` with no values).
     """
     path = CONFIG_DIR / "descriptors" / f"{name}.yaml" if path is None else Path(path)
     if not path.is_file():

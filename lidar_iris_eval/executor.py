@@ -7,9 +7,9 @@ The CLI builds one executor from ``--workers`` / ``--scheduler``
 CLI reads global execution state.
 
 * :class:`SerialExecutor` (``--workers 1``): everything in this process;
-* :class:`ProcessExecutor` (``--scheduler processes``, the default):
-  extraction chunks in a local pool of ``workers`` processes; matching blocks
-  in this process (they share one large descriptor array);
+* :class:`ProcessExecutor` (``--scheduler processes``, the default): owns a
+  local pool of ``workers`` processes behind ``imap`` (extraction chunks);
+  matching blocks in this process (they share one large descriptor array);
 * :class:`DaskExecutor` (``--scheduler local`` or ``tcp://HOST:PORT``):
   extraction chunks and matching blocks are cluster tasks. A matching task
   returns reductions only (per-row best matches, per-block counts), never a
@@ -59,11 +59,52 @@ class SerialExecutor:
 
 @dataclass(frozen=True)
 class ProcessExecutor(SerialExecutor):
-    """A local process pool of ``workers`` for extraction; blocks run in this process
-    (``imap`` is serial: a block pass shares one large descriptor array)."""
+    """A local process pool of ``workers``: ``imap`` runs its tasks there (extraction
+    chunks). Block passes stay in this process (``distributes_blocks`` is False: they
+    share one large descriptor array).
+
+    ``shared`` is handed to each worker once (the pool's initializer), so a task
+    ships only its own small arguments; a worker exits with the process that
+    made the pool. Errors cross the process boundary as raised
+    (:class:`~lidar_iris_eval.errors.LirisError` pickles with both its parts).
+    """
 
     workers: int = 2
     serial: bool = False
+
+    def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
+             ) -> Iterator[tuple[int, Any]]:
+        if self.workers <= 1 or len(tasks) <= 1:
+            yield from SerialExecutor.imap(self, fn, tasks, shared)
+            return
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)),
+                                 initializer=_init_pool_worker,
+                                 initargs=(fn, tuple(shared), os.getpid())) as pool:
+            futures = {pool.submit(_pool_task, *task): index for index, task in enumerate(tasks)}
+            try:
+                for future in as_completed(futures):
+                    yield futures[future], future.result()
+            except BaseException:
+                for future in futures:
+                    future.cancel()
+                raise
+
+
+#: per-process state of pool workers: the task function and the shared arguments
+_POOL: dict[str, Any] = {}
+
+
+def _init_pool_worker(fn: Callable, shared: tuple, parent_pid: int) -> None:
+    from lidar_iris_eval.lifetime import die_with_parent  # a SIGKILLed liris leaves no workers
+
+    die_with_parent(parent_pid)
+    _POOL["fn"], _POOL["shared"] = fn, shared
+
+
+def _pool_task(*task):
+    return _POOL["fn"](*_POOL["shared"], *task)
 
 
 @dataclass

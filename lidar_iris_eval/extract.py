@@ -36,7 +36,6 @@ import os
 import sys
 import time
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -432,44 +431,28 @@ class _Joiner:
 def _compute_chunks(seq, descriptors, todo, workers, bar, executor=None) -> Iterable:
     """Yield ``((a, b), outputs)`` for each range in ``todo`` (any order with a pool).
 
-    ``outputs`` holds one arrays dict per descriptor of ``descriptors``. With an
-    executor that distributes work (Dask, ``--scheduler``), the chunks are its tasks.
+    ``outputs`` holds one arrays dict per descriptor of ``descriptors``. The
+    executor runs the chunks (``imap``: in this process, its process pool or
+    Dask tasks); without one, the local executor of ``workers``.
     """
-    if executor is not None and executor.distributes_blocks and todo:
-        for index, outputs in executor.imap(_compute_range, todo, shared=(seq, descriptors)):
-            a, b = todo[index]
-            outputs = _raise_errors(outputs)
-            bar.update(b - a)
-            yield (a, b), outputs
-        return
-    if workers == 1 or len(todo) <= 1:
+    from lidar_iris_eval.executor import local_executor
+
+    executor = local_executor(workers) if executor is None else executor
+    if executor.serial:  # in this process: the bar moves scan by scan
         for a, b in todo:
-            yield (a, b), _raise_errors(_compute_range(seq, descriptors, a, b, bar.update))
+            yield (a, b), _compute_range(seq, descriptors, a, b, bar.update)
         return
-    with ProcessPoolExecutor(
-        max_workers=min(workers, len(todo)),
-        initializer=_init_worker,
-        initargs=(seq, descriptors, os.getpid()),
-    ) as pool:
-        futures = {pool.submit(_worker_range, a, b): (a, b) for a, b in todo}
-        try:
-            for future in as_completed(futures):
-                a, b = futures[future]
-                outputs = _raise_errors(future.result())
-                bar.update(b - a)
-                yield (a, b), outputs
-        except BaseException:
-            for future in futures:
-                future.cancel()
-            raise
+    for index, outputs in executor.imap(_compute_range, todo, shared=(seq, descriptors)):
+        a, b = todo[index]
+        bar.update(b - a)
+        yield (a, b), outputs
 
 
 def _compute_range(seq, descriptors, a: int, b: int, tick=None):
     """Descriptors of scans ``[a, b)``, one arrays dict per descriptor; each scan read once.
 
-    A LirisError is returned, not raised: returning it keeps the error intact
-    across a process boundary (its two-argument constructor does not survive
-    pickling).
+    A bad scan is a LirisError naming it; it crosses a process boundary as
+    raised (``LirisError`` pickles with its source and problem).
     """
     n = len(descriptors)
     outputs = [[] for _ in range(n)]
@@ -504,11 +487,12 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
             if tick is not None:
                 tick(1)
     except LirisError as err:
-        return ("error", scan_source(seq, i, err.source), err.problem)
+        raise LirisError(scan_source(seq, i, err.source), err.problem) from None
     except MemoryError:
-        return ("error", f"{name} parameters",
-                f"not enough memory to compute the descriptor of one scan "
-                f"({scan_source(seq, i, None)}); check --param / the preset's sizes")
+        raise LirisError(f"{name} parameters",
+                         f"not enough memory to compute the descriptor of one scan "
+                         f"({scan_source(seq, i, None)}); check --param / the preset's "
+                         "sizes") from None
     return [_pack(d, outputs[j], extract_s[j], read_s.copy())
             for j, d in enumerate(descriptors)]
 
@@ -558,30 +542,6 @@ def _warm_up(descriptor, scan, wants_scan: bool) -> None:
     else:
         descriptor.compute(scan)
     _WARMED.add(key)
-
-
-def _raise_errors(result):
-    if isinstance(result, tuple):
-        _, source, problem = result
-        raise LirisError(source, problem)
-    return result
-
-
-# Per-process state of pool workers: set once by the initializer, so each task
-# only ships two integers instead of the sequence and descriptor.
-_WORKER: dict[str, Any] = {}
-
-
-def _init_worker(seq, descriptors, parent_pid: int | None = None) -> None:
-    if parent_pid is not None:  # a SIGKILLed liris must not leave workers computing
-        from lidar_iris_eval.lifetime import die_with_parent
-
-        die_with_parent(parent_pid)
-    _WORKER["seq"], _WORKER["descriptors"] = seq, descriptors
-
-
-def _worker_range(a: int, b: int):
-    return _compute_range(_WORKER["seq"], _WORKER["descriptors"], a, b)
 
 
 def external_database(desc, seq_name: str = "", fingerprint: str = ""):

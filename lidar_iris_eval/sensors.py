@@ -3,7 +3,7 @@
 One :class:`SensorSpec` per ``--sensor`` name feeds both the simulator
 (:mod:`lidar_iris_eval.simulate.sensors`: beam layout, fields of view, range,
 point rate) and LiDAR Iris's height range (the ``sensors:`` block of
-``configs/descriptors/lidar-iris.yaml``). Values come from the makers' data
+``lidar_iris_eval/descriptors/lidar_iris/presets.yaml``). Values come from the makers' data
 sheets (named in :attr:`SensorSpec.datasheet`); the mounting height is not a
 sensor property but a platform choice, named as such.
 

@@ -50,9 +50,11 @@ def test_eval_writes_the_documented_run_folder(seq_dir, tmp_path, capsys):
     assert [d["name"] for d in config["descriptors"]] == ["toy", "toy-asym"]
     assert config["descriptors"][0]["params"] == {"bins": 16, "max_range": 20.0, "delay": 0.0}
     assert config["protocols"] == [1, 2]
-    assert config["exclude"] == {"value": 5, "preset": "custom"}
-    assert (config["radius"], config["distance"], config["pose_frame"]) == (4.0, "3d", "camera")
-    assert config["recall_denominator"] == "revisits" and config["candidates"] is None
+    conv = config["convention"]  # the conventions, stored once (issue 39 D2)
+    assert (conv["exclude"], conv["exclude_seconds"], conv["preset"]) == (5, None, "custom")
+    assert (conv["radius"], conv["distance"], conv["pose_frame"]) == (4.0, "3d", "camera")
+    assert conv["recall_denominator"] == "revisits" and config["candidates"] is None
+    assert config["pose_frame"] == "camera"  # the frame used
 
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["version"] == __version__
@@ -105,7 +107,7 @@ def test_existing_run_needs_overwrite(seq_dir, tmp_path, capsys):
                                  "accepted"), capsys)
     assert code == 0, err
     config = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
-    assert config["recall_denominator"] == "accepted"
+    assert config["convention"]["recall_denominator"] == "accepted"
     assert not list(tmp_path.glob(".run.*"))  # no temporary or old folders left
 
 
@@ -235,4 +237,4 @@ def test_library_evaluate_returns_what_the_cli_writes(seq_dir, tmp_path, capsys)
     out = write_run(run, tmp_path / "lib-run")
     assert (out / "protocol1" / "toy" / "matches.csv").is_file()
     config = yaml.safe_load((out / "config.yaml").read_text())
-    assert config["exclude"] == {"value": 5, "preset": "custom"}
+    assert config["convention"]["exclude"] == 5 and config["convention"]["preset"] == "custom"

@@ -95,10 +95,10 @@ class ToyRetrieval(ToyHist):
 
     name = "toy-retrieval"
 
-    def candidates(self, query_descs, database_descs, k):
-        d = np.abs(query_descs[:, None, :2] - database_descs[None, :, :2]).sum(-1)
-        k = min(k, database_descs.shape[0])
-        return np.argsort(d, axis=1, kind="stable")[:, :k]
+    def retrieve(self, db, query, n_allowed, k):
+        d = np.abs(db[query, :2] - db[:n_allowed, :2]).sum(-1)
+        idx = np.argsort(d, kind="stable")[: min(k, n_allowed)]
+        return idx.astype(np.int64), np.full(len(idx), np.nan)
 
 
 # --------------------------------------------------------------------------- builders
@@ -332,7 +332,7 @@ def test_scan_context_candidates_on_the_two_stage_path_equal_the_former_loop():
     assert (got.match >= 0).all() and len(got.query) == 21
     for q, i in enumerate(got.query):
         database = descs[: i - 3 + 1]
-        cand = np.unique(desc.candidates(descs[i: i + 1], database, 4)[0])
+        cand = np.unique(desc.retrieve(descs, int(i), len(database), 4)[0])
         d, y = desc.distances(descs[i], database[cand])
         d = np.where(np.isnan(d), np.inf, d)
         best = int(np.argmin(d))

@@ -7,6 +7,7 @@ import runpy
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -222,3 +223,299 @@ def test_protocols_1_and_2_honours_candidates(tiny_mixed, tmp_path):
     assert p1.metrics["ap"] == alone.metrics["ap"]
     exhaustive = protocol2(desc, stacked, positions, settings.replace(candidates=None))
     assert p2.metrics == exhaustive.metrics
+
+
+# --- D2: a run written through the API with a custom Settings replays with its conventions ------
+
+def test_api_run_with_custom_settings_replays_with_its_conventions(tiny_mixed, tmp_path):
+    import yaml
+
+    from lidar_iris_eval.cli import cli
+    from lidar_iris_eval.evaluation.evaluate import Settings, evaluate
+    from lidar_iris_eval.runs.reader import load_run
+    from lidar_iris_eval.runs.writer import write_run
+
+    custom = Settings(inclusive_radius=True, not_revisit_radius=10.0, last_frame_query=False)
+    run = evaluate(tiny_mixed, ["scan-context"], protocols=(1,), settings=custom,
+                   cache=tmp_path / "cache")
+    write_run(run, tmp_path / "api")
+    result = CliRunner().invoke(cli, ["eval", "--config", str(tmp_path / "api" / "config.yaml"),
+                                      "--out", str(tmp_path / "replay"), "--cache-dir",
+                                      str(tmp_path / "cache"), "--quiet"])
+    assert result.exit_code == 0, result.output
+    original, replay = load_run(tmp_path / "api"), load_run(tmp_path / "replay")
+    assert replay.gt_settings() == original.gt_settings()
+    assert replay.gt_settings().name == "custom"
+    (row,) = [r for r in replay.rows if r["protocol"] == 1]
+    (expected,) = [r for r in run.rows if r["protocol"] == 1]
+    assert (row["ap"], row["n_queries"]) == (expected["ap"], expected["n_queries"])
+    # the conventions are stored once: the convention block, no flat copy to disagree with it
+    config = yaml.safe_load((tmp_path / "replay" / "config.yaml").read_text())
+    assert not {"radius", "exclude", "distance", "recall_denominator"} & set(config)
+    assert config["convention"]["not_revisit_radius"] == 10.0
+
+
+def test_old_run_without_convention_block_replays_from_flat_keys(tiny_mixed, tmp_path):
+    import yaml
+
+    from lidar_iris_eval.cli import cli
+    from lidar_iris_eval.runs.reader import load_run
+
+    base = ["--cache-dir", str(tmp_path / "cache"), "--quiet"]
+    result = CliRunner().invoke(cli, ["eval", str(tiny_mixed), "-d", "scan-context",
+                                      "--protocol", "1", "--out", str(tmp_path / "new"), *base])
+    assert result.exit_code == 0, result.output
+    config = yaml.safe_load((tmp_path / "new" / "config.yaml").read_text())
+    block = config.pop("convention")
+    config.update(radius=7.5, exclude={"value": 40, "preset": "custom"}, distance="planar",
+                  recall_denominator="accepted", pose_frame=block["pose_frame"])
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "config.yaml").write_text(yaml.safe_dump(config))
+    result = CliRunner().invoke(cli, ["eval", "--config", str(tmp_path / "old"),
+                                      "--out", str(tmp_path / "replay"), *base])
+    assert result.exit_code == 0, result.output
+    s = load_run(tmp_path / "replay").gt_settings()
+    assert (s.radius, s.exclude, s.distance, s.recall_denominator) == (7.5, 40, "planar",
+                                                                         "accepted")
+
+
+# --- no import circle in the package (simulate/pipeline.py <-> simulate/sessions.py was one) -----
+
+def _circles(modules, imports_of) -> list[list[str]]:
+    """Strongly connected groups of more than one module (Tarjan, iterative)."""
+    index, low, on, stack, found = {}, {}, set(), [], []
+    for root in modules:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(imports_of(root))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on.add(child)
+                    work.append((child, iter(sorted(imports_of(child)))))
+                elif child in on:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                group = []
+                while True:
+                    top = stack.pop()
+                    on.discard(top)
+                    group.append(top)
+                    if top == node:
+                        break
+                if len(group) > 1:
+                    found.append(sorted(group))
+    return found
+
+
+def test_circle_finder_sees_a_circle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _circles(sorted(graph), graph.__getitem__) == [["a", "b", "c"]]
+    assert _circles(["x", "y"], {"x": {"y"}, "y": set()}.__getitem__) == []
+
+
+def test_no_import_circle_in_the_package():
+    grimp = pytest.importorskip("grimp")  # shipped with import-linter (the [test] extra)
+
+    graph = grimp.build_graph("lidar_iris_eval", cache_dir=None)
+    assert _circles(sorted(graph.modules), graph.find_modules_directly_imported_by) == []
+
+
+# --- item 5: each built-in method's presets sit in its folder ------------------------------------
+
+def test_builtin_presets_sit_in_their_method_folders():
+    from lidar_iris_eval import descriptors
+    from lidar_iris_eval.config import CONFIG_DIR, load_yaml
+    from lidar_iris_eval.errors import LirisError
+
+    assert not (CONFIG_DIR / "descriptors").exists()
+    for name in descriptors._BUILTIN:
+        folder = descriptors.method_folder(name)
+        assert folder is not None and (folder / "presets.yaml").is_file(), name
+        first = next(iter(load_yaml(folder / "presets.yaml")["presets"]))
+        try:
+            built = descriptors.get_descriptor(name)
+        except LirisError:  # an optional extra (mapclosures' backend) not installed
+            continue
+        assert built.preset == first, name
+
+
+# --- D10: one block pass with reducers; the second pass of streamed protocol 2 written once ------
+
+_PASS_MODULES = ("lidar_iris_eval/matching/blocks.py", "lidar_iris_eval/evaluation/streaming_pr.py",
+                 "lidar_iris_eval/evaluation/cross_session.py",
+                 "lidar_iris_eval/evaluation/protocol2.py")
+
+
+def _loops_calling_pairwise(source: str) -> set[str]:
+    """Names of the functions with a for/while loop whose body calls ``*pairwise``."""
+    import ast
+
+    found = set()
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for loop in ast.walk(fn):
+            if not isinstance(loop, (ast.For, ast.While)):
+                continue
+            for node in ast.walk(loop):
+                callee = getattr(node, "func", None) if isinstance(node, ast.Call) else None
+                name = getattr(callee, "attr", None) or getattr(callee, "id", None)
+                if name in ("pairwise", "_pairwise"):
+                    found.add(fn.name)
+    return found
+
+
+def test_loop_finder_sees_a_block_loop():
+    text = "def walk(d, xs):\n    for a in xs:\n        d.pairwise(a, xs)\n"
+    assert _loops_calling_pairwise(text) == {"walk"}
+    assert _loops_calling_pairwise("def f(d, x):\n    return d.pairwise(x, x)\n") == set()
+
+
+def test_one_block_loop():
+    loops = set()
+    for path in _PASS_MODULES:
+        loops |= _loops_calling_pairwise((ROOT / path).read_text())
+    # positive_values: protocol 2's positives, computed before the pass (not a block pass)
+    assert loops == {"block_pass", "positive_values"}
+
+
+class _ShapeDependent:
+    """Distances that change with the batch shape (as float32 batched kernels may): the
+    positives computed before the pass differ from the block values -> a second pass."""
+
+    name = "shape-dependent"
+    symmetric = False
+
+    def pairwise(self, q, db):
+        q, db = np.asarray(q)[:, None], np.asarray(db)[None, :]
+        d = np.abs(q - db) + 1e-3 * (q.shape[0] % 5)
+        return d, np.full(d.shape, np.nan)
+
+
+def test_streamed_second_pass_is_exact_serial_and_distributed():
+    sys.path.insert(0, str(ROOT / "tests"))
+    try:
+        from test_executor import ReversedExecutor
+    finally:
+        sys.path.remove(str(ROOT / "tests"))
+    from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+    from lidar_iris_eval.evaluation.metrics import reduce_curve
+    from lidar_iris_eval.evaluation.protocol2 import score_protocol2
+    from lidar_iris_eval.evaluation.streaming_pr import stream_protocol2
+    from lidar_iris_eval.matching.blocks import affinity_matrix
+
+    rng = np.random.default_rng(5)
+    n = 140
+    descs = np.round(rng.random(n) * 5, 2)
+    t = np.linspace(0, 4 * np.pi, n)
+    gt = compute_ground_truth(np.c_[20 * np.cos(t), np.zeros(n), 20 * np.sin(t)], 4.0, 5)
+    desc, budget = _ShapeDependent(), 1500
+    full, _ = affinity_matrix(desc, descs, None, budget)  # the same blocks: the block values
+    reference = score_protocol2(full, gt)
+    results = []
+    for executor in (None, ReversedExecutor()):
+        with pytest.warns(UserWarning, match="second pass"):
+            affinity, curve, matches = stream_protocol2(desc, descs, gt.pairs,
+                                                        gt.n_positive_pairs, 5, budget,
+                                                        executor=executor, storage="none")
+        assert affinity.passes == 2
+        result = score_protocol2(affinity, gt, curve=curve)
+        ref_curve = reduce_curve(reference.curve)
+        np.testing.assert_array_equal(result.curve.precision, ref_curve.precision)
+        np.testing.assert_array_equal(result.curve.recall, ref_curve.recall)
+        for key in ("ap", "f1_max", "r100p", "ep"):
+            assert result.metrics[key] == reference.metrics[key], key
+        results.append((curve, matches))
+    (c0, m0), (c1, m1) = results
+    np.testing.assert_array_equal(c0.precision, c1.precision)
+    np.testing.assert_array_equal(c0.recall, c1.recall)
+    np.testing.assert_array_equal(m0.match, m1.match)
+    np.testing.assert_array_equal(m0.distance, m1.distance)
+
+
+# --- D7: evaluate._evaluate_one does not branch on the kind of method ------------------------
+
+def test_evaluate_one_leaves_the_kind_to_the_matchers(tiny_mixed, tmp_path, monkeypatch):
+    import inspect
+
+    from lidar_iris_eval.evaluation import evaluate as ev
+
+    assert "two_stage" not in inspect.getsource(ev._evaluate_one)
+    calls = []
+    real = ev.protocols_1_and_2
+    monkeypatch.setattr(ev, "protocols_1_and_2",
+                        lambda *a, **k: calls.append(a[0].name) or real(*a, **k))
+    settings = ev.Settings(candidates=3)
+    both = ev.evaluate(tiny_mixed, ["scan-context"], protocols=(1, 2), settings=settings,
+                       cache=tmp_path / "cache", progress=False)
+    assert calls == ["scan-context"]  # one call; protocols_1_and_2 honours candidates (D1)
+    one = ev.evaluate(tiny_mixed, ["scan-context"], protocols=(1,), settings=settings,
+                      cache=tmp_path / "cache", progress=False)
+    two = ev.evaluate(tiny_mixed, ["scan-context"], protocols=(2,), settings=ev.Settings(),
+                      cache=tmp_path / "cache", progress=False)  # candidates: protocol 1 only
+    by = {r["protocol"]: r for r in both.rows}
+    for key in ("ap", "f1_max", "r100p", "ep"):
+        assert by[1][key] == one.rows[0][key], key
+        assert by[2][key] == two.rows[0][key], key
+
+
+# --- item 4: the executor owns the process pool; errors cross processes as LirisError -----------
+
+def _pid_and_sum(offset, a, b):
+    import os
+
+    return os.getpid(), offset + a + b
+
+
+def _fails_in_worker(a):
+    from lidar_iris_eval.errors import LirisError
+
+    raise LirisError(f"scan {a}", "bad points")
+
+
+def test_process_executor_runs_tasks_in_its_pool():
+    import os
+
+    from lidar_iris_eval.executor import ProcessExecutor
+
+    tasks = [(i, 10 * i) for i in range(6)]
+    got = dict(ProcessExecutor(workers=2).imap(_pid_and_sum, tasks, shared=(100,)))
+    assert sorted(got) == list(range(6))
+    assert [got[i][1] for i in range(6)] == [100 + 11 * i for i in range(6)]
+    assert os.getpid() not in {pid for pid, _ in got.values()}  # not in this process
+
+
+def test_errors_cross_the_pool_as_liris_errors():
+    from lidar_iris_eval.errors import LirisError
+    from lidar_iris_eval.executor import ProcessExecutor
+
+    with pytest.raises(LirisError) as info:
+        list(ProcessExecutor(workers=2).imap(_fails_in_worker, [(3,), (4,)]))
+    assert info.value.problem == "bad points" and info.value.source in ("scan 3", "scan 4")
+
+
+def test_extraction_through_the_pool_equals_serial(tiny_mixed, tmp_path):
+    from lidar_iris_eval.executor import ProcessExecutor, SerialExecutor
+    from lidar_iris_eval.extract import extract_many
+    from lidar_iris_eval.io import open_sequence
+
+    seq = open_sequence(tiny_mixed)
+    from lidar_iris_eval.descriptors import get_descriptor
+
+    descs = [get_descriptor("scan-context"), get_descriptor("m2dp")]
+    serial = extract_many(seq, descs, chunk_size=40, executor=SerialExecutor())
+    pooled = extract_many(seq, descs, chunk_size=40, executor=ProcessExecutor(workers=2))
+    for a, b in zip(serial, pooled, strict=True):
+        np.testing.assert_array_equal(a.descriptors, b.descriptors)

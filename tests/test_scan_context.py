@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lidar_iris_eval import descriptors
 from lidar_iris_eval.config import descriptor_preset_values
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.descriptors.scan_context import (
@@ -211,7 +212,9 @@ def test_params_validation_and_presets():
         ScanContextParams(ring_key="median")
     with pytest.raises(LirisError):
         get_descriptor("scan-context", no_such_key=1)
-    name, _ = descriptor_preset_values("scan-context", None)
+    assert get_descriptor("scan-context").preset == "reference"  # the first preset
+    folder = Path(descriptors.__file__).parent / "scan_context" / "presets.yaml"
+    name, _ = descriptor_preset_values("scan-context", None, path=folder)
     assert name == "reference"
     ref = get_descriptor("scan-context", "reference").params
     assert (ref.rings, ref.sectors, ref.max_radius, ref.lidar_height) == (20, 60, 80.0, 2.0)
@@ -372,14 +375,16 @@ def test_rounding_margin_and_inverse_dft():
 def test_candidates_are_nearest_ring_keys():
     desc = get_descriptor("scan-context")
     recs = _records(desc, _random_contexts(np.random.default_rng(9), 60))
-    q, db = recs[:8], recs[8:]
-    got = desc.candidates(q, db, 10)
-    assert got.shape == (8, 10) and got.dtype == np.int64
-    dists = np.linalg.norm(q["ring_key"][:, None] - db["ring_key"][None], axis=2)
-    expected = np.argsort(dists, axis=1, kind="stable")[:, :10]
-    np.testing.assert_array_equal(got, expected)
-    assert desc.candidates(q, db).shape == (8, desc.params.num_candidates)
-    assert desc.candidates(q, db[:3], 50).shape == (8, 3)
+    keys = recs["ring_key"]
+    for query, n_allowed in ((59, 52), (40, 30), (12, 3)):
+        got, dist = desc.retrieve(recs, query, n_allowed, 10)
+        k = min(10, n_allowed)
+        assert got.shape == (k,) and got.dtype == np.int64
+        d = np.linalg.norm(keys[:n_allowed] - keys[query], axis=1)
+        expected = np.argsort(d, kind="stable")[:k]
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_allclose(dist, d[expected], rtol=1e-12)
+    assert not hasattr(desc, "candidates")  # the legacy retrieval hook is gone (issue 39)
 
 
 # ------------------------------------------------------------------------ real scans

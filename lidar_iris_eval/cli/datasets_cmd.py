@@ -23,7 +23,9 @@ def command(ctx, as_json):
     """
     if ctx.invoked_subcommand is not None:
         return
-    from lidar_iris_eval.io.datasets import DATASETS
+    from lidar_iris_eval.io.datasets import all_datasets
+
+    DATASETS = all_datasets(strict=False)  # with the external readers (lidar_iris_eval/plugins.py)
 
     if as_json:
         echo_json([{"name": s.name, "title": s.title, "layout": s.layout,

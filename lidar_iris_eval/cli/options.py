@@ -12,6 +12,8 @@ from lidar_iris_eval.evaluation.settings import EXCLUDE_PRESETS, resolve_exclude
 
 #: where the resolved convention preset is kept for the command body (click ctx.meta)
 CONVENTION_KEY = "liris.convention"
+#: the ``convention`` block of a run replayed with ``--config`` (set by cli/workflow.py)
+REPLAYED_KEY = "liris.replayed_convention"
 
 
 def parse_exclude(value: str) -> tuple[int, str]:
@@ -60,9 +62,17 @@ def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
     Without a preset, the options themselves form the convention ("liris"
     with the given values). ``kwargs`` is updated in place with the values
     used; a window in seconds leaves ``exclude`` as the string ``"<T>s"``.
+
+    A run replayed with ``--config`` (and no ``--convention``) starts from its
+    recorded rules, ``Settings.from_dict(config["convention"])``, and only the
+    options given on the command line change them.
     """
     from lidar_iris_eval.evaluation.conventions import get_convention, same_rules, with_overrides
+    from lidar_iris_eval.evaluation.settings import Settings
 
+    replayed = ctx.meta.get(REPLAYED_KEY)
+    if replayed is not None and name is None:
+        return _replayed_convention(ctx, Settings.from_dict(replayed), kwargs)
     # a query/database run (liris eval --query --database) may use the cross-session presets
     cross = bool(ctx.params.get("query_path")) and bool(ctx.params.get("database_path"))
     base = get_convention(name or "liris", cross_session=cross)
@@ -80,6 +90,28 @@ def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
     if name is None:  # no preset asked: "liris" when the options are its defaults
         conv = base if same_rules(conv, base) else with_overrides(
             conv, name="custom", source="command-line options")
+    _effective_values(conv, kwargs, keep_exclude=_given(ctx, "exclude") or name is None)
+    return conv
+
+
+def _replayed_convention(ctx: click.Context, recorded, kwargs: dict):
+    """``--config``: the recorded Settings, with the ground-truth options given here."""
+    from lidar_iris_eval.evaluation.conventions import with_overrides
+
+    values = {key: kwargs[key] for key in ("radius", "distance", "pose_frame",
+                                           "recall_denominator")
+              if key in kwargs and _given(ctx, key)}
+    if _given(ctx, "exclude"):
+        values["exclude"], values["exclude_seconds"], _ = parse_exclude_window(kwargs["exclude"])
+    if values and recorded.name.endswith("custom"):  # already custom: keep its name
+        values["name"] = recorded.name
+    conv = with_overrides(recorded, **values)
+    _effective_values(conv, kwargs, keep_exclude=False)
+    return conv
+
+
+def _effective_values(conv, kwargs: dict, keep_exclude: bool) -> None:
+    """Write the convention's values back into the command's keyword arguments."""
     kwargs["radius"] = conv.radius
     kwargs["distance"] = conv.distance
     kwargs["pose_frame"] = conv.pose_frame
@@ -87,9 +119,8 @@ def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
         kwargs["recall_denominator"] = conv.recall_denominator
     if conv.exclude_seconds is not None:
         kwargs["exclude"] = f"{conv.exclude_seconds:g}s"
-    elif not (_given(ctx, "exclude") or name is None) or kwargs["exclude"] is None:
+    elif not keep_exclude or kwargs["exclude"] is None:
         kwargs["exclude"] = str(conv.exclude)
-    return conv
 
 
 def _preset_names(names) -> str:

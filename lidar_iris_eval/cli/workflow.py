@@ -30,9 +30,12 @@ def _load_config(ctx: click.Context, param: click.Parameter, value):
     """Eager ``--config``: the recorded run's options become this call's defaults."""
     if value is None or ctx.resilient_parsing:
         return value
-    from lidar_iris_eval.runs.replay import config_defaults, read_config
+    from lidar_iris_eval.cli.options import REPLAYED_KEY
+    from lidar_iris_eval.runs.replay import config_defaults, read_config, replayed_convention
 
-    defaults = config_defaults(read_config(value))
+    config = read_config(value)
+    defaults = config_defaults(config)
+    ctx.meta[REPLAYED_KEY] = replayed_convention(config)  # rebuilt by Settings.from_dict
     for p in ctx.command.params:  # a SEQUENCE... argument takes a list
         if p.name in defaults and p.nargs == -1 and isinstance(defaults[p.name], str):
             defaults[p.name] = [defaults[p.name]]

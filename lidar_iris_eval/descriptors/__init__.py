@@ -29,6 +29,39 @@ _REGISTRY: dict[str, str] = {
 }
 
 
+#: the built-in names, which no plugin may take
+_BUILTIN = frozenset(_REGISTRY)
+
+
+def _plugins(strict: bool = True) -> dict:
+    """External methods (entry points ``liris.methods``, ``LIRIS_METHODS``) by name.
+
+    ``strict=False`` (listings, help text) drops what cannot be read instead
+    of raising: only using a broken plugin is an error.
+    """
+    from lidar_iris_eval.plugins import plugins
+
+    try:
+        found = plugins("methods", reserved=_BUILTIN)
+    except LirisError:
+        if strict:
+            raise
+        return {}
+    return {p.name: p for p in found if p.name not in _REGISTRY}
+
+
+def _targets(strict: bool = False) -> dict[str, str]:
+    """Every registered name -> ``"module:ClassName"``: the table, then the plugins."""
+    return {**_REGISTRY, **{n: p.target for n, p in _plugins(strict).items()}}
+
+
+def _findable(module_name: str) -> bool:
+    try:
+        return importlib.util.find_spec(module_name) is not None
+    except Exception:  # a plugin's parent package that fails to import: not listed
+        return False
+
+
 def register_descriptor(name: str, target: str) -> None:
     """Register a descriptor class under ``name``, given as ``"module:ClassName"``.
 
@@ -42,27 +75,24 @@ def register_descriptor(name: str, target: str) -> None:
 
 def available_descriptors() -> list[str]:
     """Names of the registered descriptors whose module is present."""
-    names = []
-    for name, target in _REGISTRY.items():
-        module_name = target.split(":")[0]
-        if importlib.util.find_spec(module_name) is not None:
-            names.append(name)
-    return names
+    return [name for name, target in _targets().items() if _findable(target.split(":")[0])]
 
 
 def registered_names() -> list[str]:
-    """Every registered name, in registry order (the order figures list methods in)."""
-    return list(_REGISTRY)
+    """Every registered name, in registry order (the order figures list methods in);
+    external methods (entry points, ``LIRIS_METHODS``) after the built-in ones."""
+    return list(_targets())
 
 
 def registered_class(name: str) -> type[Descriptor] | None:
     """The class registered under ``name``, or None when unknown or not importable."""
-    if name not in _REGISTRY:
+    targets = _targets()
+    if name not in targets:
         return None
-    module_name, class_name = _REGISTRY[name].split(":")
+    module_name, class_name = targets[name].split(":")
     try:
         return getattr(importlib.import_module(module_name), class_name)
-    except (ImportError, AttributeError):
+    except Exception:  # a broken plugin: figures fall back to their defaults
         return None
 
 
@@ -72,9 +102,10 @@ def method_module(name: str, part: str) -> str | None:
     A method's folder holds its own reference loop and presets, found from
     its registry line alone.
     """
-    if name not in _REGISTRY:
+    targets = _targets()
+    if name not in targets:
         return None
-    package = _REGISTRY[name].split(":")[0]
+    package = targets[name].split(":")[0]
     target = f"{package}.{part}"
     try:
         return target if importlib.util.find_spec(target) is not None else None
@@ -83,19 +114,48 @@ def method_module(name: str, part: str) -> str | None:
 
 
 def method_folder(name: str):
-    """The folder of the package registered under ``name`` (None if it is a module)."""
+    """The folder of the package registered under ``name``.
+
+    For an external method whose class sits in a plain module
+    (``liris_mine.method:Mine``), the folder of that module (its package);
+    None for a built-in or ``register_descriptor`` module outside a package.
+    """
     from pathlib import Path
 
-    if name not in _REGISTRY:
+    targets = _targets()
+    if name not in targets:
         return None
-    spec = importlib.util.find_spec(_REGISTRY[name].split(":")[0])
-    if spec is None or not spec.submodule_search_locations:
+    try:
+        spec = importlib.util.find_spec(targets[name].split(":")[0])
+    except Exception:
         return None
-    return Path(next(iter(spec.submodule_search_locations)))
+    if spec is None:
+        return None
+    if spec.submodule_search_locations:
+        return Path(next(iter(spec.submodule_search_locations)))
+    if name in _plugins(strict=False) and spec.origin:
+        return Path(spec.origin).parent
+    return None
+
+
+def _plugin_class(plugin) -> type[Descriptor]:
+    """Load an external method's class; one LirisError naming the plugin if it is broken."""
+    cls = plugin.load()
+    if not (isinstance(cls, type) and issubclass(cls, Descriptor)):
+        raise LirisError(plugin.label, "is not a lidar_iris_eval.descriptors.base.Descriptor "
+                                       "subclass")
+    if getattr(cls, "name", None) != plugin.name:
+        raise LirisError(plugin.label, f"its class is named {getattr(cls, 'name', None)!r}; "
+                                       "the entry's name must be the class's `name`")
+    return cls
 
 
 def descriptor_class(name: str) -> type[Descriptor]:
-    """The class registered under ``name``; an unknown name is a LirisError."""
+    """The class registered under ``name``; an unknown name or a broken plugin is a
+    LirisError."""
+    external = _plugins(strict=True)
+    if name in external:
+        return _plugin_class(external[name])
     if name not in available_descriptors():
         raise LirisError(
             option("descriptor", name),

@@ -235,21 +235,14 @@ class Descriptor(abc.ABC):
         """Up to ``k`` candidates among frames ``[0, n_allowed)``, best first.
 
         Returns ``(indices (k',) int64, retrieval distances (k',) float64)``.
-        Only methods with a retrieval stage implement it. For descriptors
-        written before this interface, a ``candidates(query_descs,
-        database_descs, k)`` method is used (distances then NaN).
+        Only methods with a retrieval stage implement it.
         """
-        legacy = getattr(self, "candidates", None)
-        if not callable(legacy):
-            raise NotImplementedError(f"{self.name} has no retrieval stage")
-        idx = np.asarray(legacy(db[query: query + 1], db[:n_allowed], k), dtype=np.int64)
-        idx = idx.reshape(-1)
-        return idx, np.full(len(idx), np.nan)
+        raise NotImplementedError(f"{self.name} has no retrieval stage")
 
     @classmethod
     def has_retrieval(cls) -> bool:
-        """True when the class implements :meth:`retrieve` (or legacy ``candidates``)."""
-        return cls.retrieve is not Descriptor.retrieve or callable(getattr(cls, "candidates", None))
+        """True when the class implements :meth:`retrieve`."""
+        return cls.retrieve is not Descriptor.retrieve
 
     def default_candidates(self) -> int:
         """Candidates per query when none are asked for: ``params.num_candidates`` or 10."""

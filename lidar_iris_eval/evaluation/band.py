@@ -114,18 +114,6 @@ def usable_presets(plan: BandPlan, descriptor, settings: Settings,
     return keep, left
 
 
-def restrict_matches(matches, limits: np.ndarray):
-    """The run's own matches on the queries of ``limits`` (presets whose windows equal the
-    run's on those queries: same database, same best match)."""
-    from dataclasses import replace
-
-    own = limits[matches.query] >= 0
-    return replace(matches, query=matches.query[own], match=matches.match[own],
-                   distance=matches.distance[own], yaw_deg=matches.yaw_deg[own],
-                   pose=None if matches.pose is None else matches.pose[own],
-                   inliers=None if matches.inliers is None else matches.inliers[own])
-
-
 def score_band(band_matches, positions: np.ndarray, presets, limits: np.ndarray,
                times=None) -> tuple[dict[str, dict], dict[str, PRCurve]]:
     """Each preset's protocol 1 metrics and PR curve from its best matches."""

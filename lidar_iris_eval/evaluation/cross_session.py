@@ -143,39 +143,57 @@ def _positive_block(positives: list[np.ndarray], a: int, b: int, n_db: int) -> n
     return block
 
 
+class _RankAndBest:
+    """Block-pass reducer of a cross-session pass: each query's rank of its first true
+    match (Recall@N, MRR) and its best database frame."""
+
+    timed = True
+
+    def __init__(self, positives, limits, n_q: int, n_db: int):
+        self.positives, self.limits, self.n_db = positives, limits, n_db
+        self.match = np.full(n_q, -1, np.int64)
+        self.dist = np.full(n_q, np.inf)
+        self.rank = np.zeros(n_q, np.int64)
+        self.has = np.zeros(n_q, bool)
+        self.size = np.zeros(n_q, np.int64)
+
+    def part(self, rows, d, y):
+        a, b = int(rows[0]), int(rows[-1]) + 1
+        width = d.shape[1]
+        cols = np.arange(width)
+        valid = (np.ones((b - a, width), bool) if self.limits is None
+                 else cols[None, :] <= self.limits[a:b, None])
+        pos = _positive_block(self.positives, a, b, self.n_db)[:, :width]
+        r = ranks_from_distances(d, pos, valid)
+        masked = np.where(valid & np.isfinite(d), d, np.inf)
+        best = np.argmin(masked, axis=1)
+        best_d = masked[np.arange(b - a), best]
+        return a, b, r, np.where(np.isfinite(best_d), best, -1), best_d
+
+    def merge(self, part) -> None:
+        a, b, r, match, dist = part
+        self.rank[a:b], self.has[a:b], self.size[a:b] = r.rank, r.has_positive, r.database_size
+        self.match[a:b], self.dist[a:b] = match, dist
+
+
 def _global_pass(descriptor, q_desc, db_desc, positives, limits, rows, progress):
+    from lidar_iris_eval.matching.blocks import block_pass
+
     n_q, n_db = len(q_desc), len(db_desc)
-    match = np.full(n_q, -1, np.int64)
-    dist = np.full(n_q, np.inf)
-    rank = np.zeros(n_q, np.int64)
-    has = np.zeros(n_q, bool)
-    size = np.zeros(n_q, np.int64)
-    cols = np.arange(n_db)
+    blocks = []
     for a in range(0, n_q, rows):
         b = min(a + rows, n_q)
         # within a sequence a block only needs the database its last query may see
         width = n_db if limits is None else int(max(limits[a:b].max(), -1)) + 1
-        if width == 0:
-            size[a:b] = 0
+        if width == 0:  # no query of the block has a database: rank 0, no match
             if progress is not None:
                 progress(b - a)
             continue
-        d, _ = descriptor.pairwise(q_desc[a:b], db_desc[:width])
-        d = np.asarray(d, dtype=np.float64)
-        valid = (np.ones((b - a, width), bool) if limits is None
-                 else cols[None, :width] <= limits[a:b, None])
-        pos = _positive_block(positives, a, b, n_db)[:, :width]
-        r = ranks_from_distances(d, pos, valid)
-        rank[a:b], has[a:b], size[a:b] = r.rank, r.has_positive, r.database_size
-        masked = np.where(valid & np.isfinite(d), d, np.inf)
-        best = np.argmin(masked, axis=1)
-        best_d = masked[np.arange(b - a), best]
-        ok = np.isfinite(best_d)
-        match[a:b] = np.where(ok, best, -1)
-        dist[a:b] = best_d
-        if progress is not None:
-            progress(b - a)
-    return match, dist, Ranks(rank, has, size, size.copy())
+        blocks.append((np.arange(a, b), width))
+    reducer = _RankAndBest(positives, limits, n_q, n_db)
+    block_pass(descriptor, q_desc, blocks, [reducer], progress=progress, database=db_desc)
+    size = reducer.size
+    return reducer.match, reducer.dist, Ranks(reducer.rank, reducer.has, size, size.copy())
 
 
 def _two_stage_pass(descriptor, q_desc, db_desc, positives, limits, k, same, progress):

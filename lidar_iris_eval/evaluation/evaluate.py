@@ -123,13 +123,7 @@ class Evaluation:
             "descriptors": [{"name": r.descriptor.name, "preset": r.descriptor.preset,
                              "params": params_dict(r.descriptor.params)} for r in self.results],
             "protocols": list(self.protocols),
-            "radius": float(s.radius),
-            "exclude": ({"value": int(s.exclude), "preset": s.exclude_name}
-                        if s.exclude_seconds is None else
-                        {"value": None, "seconds": s.exclude_seconds, "preset": "seconds"}),
-            "recall_denominator": s.recall_denominator,
-            "distance": s.distance,
-            "pose_frame": self.pose_frame,
+            "pose_frame": self.pose_frame,  # the frame used (camera falls back to lidar)
             "candidates": s.candidates,
             "block_pairs": int(s.pair_budget),
             "convention": s.to_dict(),  # Settings.from_dict rebuilds the run's ground truth
@@ -147,17 +141,18 @@ class Evaluation:
     def header(self, config: dict | None = None) -> dict:
         """The metrics.json header: version, host, sequence and every convention."""
         config = self.config() if config is None else config
+        s = self.settings
         return {
             **run_header(self, config),
             "conventions": {
-                "radius": config["radius"],
-                "exclude": config["exclude"]["value"],
-                "exclude_preset": config["exclude"]["preset"],
-                "distance": config["distance"],
-                "pose_frame": config["pose_frame"],
-                "recall_denominator": config["recall_denominator"],
-                "candidates": config["candidates"],
-                "positive": f"ground-truth distance < {config['radius']:g} m",
+                "radius": float(s.radius),
+                "exclude": None if s.exclude_seconds is not None else int(s.exclude),
+                "exclude_preset": s.exclude_name,
+                "distance": s.distance,
+                "pose_frame": self.pose_frame,
+                "recall_denominator": s.recall_denominator,
+                "candidates": s.candidates,
+                "positive": f"ground-truth distance < {float(s.radius):g} m",
                 "threshold_rule": m.THRESHOLD_RULE,
                 "ap": m.AP_DEFINITION,
                 "ep": m.EP_DEFINITION,
@@ -384,20 +379,15 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
             common["band_limits"] = plan.limits[keep]
     with tqdm(total=rows_to_match, desc=f"{desc.name} matching", unit="query",
               file=sys.stderr, disable=not progress, leave=False) as bar:
-        if protocols == (1, 2) and (s.candidates is None or desc.two_stage):
+        if protocols == (1, 2):  # the matchers pick the path from the method and candidates
             p1, p2 = protocols_1_and_2(desc, db.descriptors, positions, s, times=times,
                                        progress=bar.update, **common)
-        else:
-            if 1 in protocols:
-                p1 = protocol1(desc, db.descriptors, positions, s, times=times,
-                               progress=bar.update, **common)
-            common.pop("band_limits", None)
-            if 2 in protocols:
-                # the bar counted protocol 1 already; don't overrun it
-                p2 = protocol2(desc, db.descriptors, positions,
-                               s.replace(candidates=s.candidates if desc.two_stage else None),
-                               progress=None if p1 is not None else bar.update,
-                               executor=executor)
+        elif protocols == (1,):
+            p1 = protocol1(desc, db.descriptors, positions, s, times=times,
+                           progress=bar.update, **common)
+        else:  # candidates is K of a two-stage method; protocol2 ignores it otherwise
+            p2 = protocol2(desc, db.descriptors, positions, s, progress=bar.update,
+                           executor=executor)
     band = None
     if plan is not None:
         from lidar_iris_eval.evaluation.band import score_band

@@ -363,8 +363,6 @@ def match_with_band(descriptor: Descriptor, descriptors, limits: np.ndarray,
         return match_protocol1(descriptor, descriptors, limits, settings, progress,
                                executor), None
     if settings.candidates is not None or descriptor.two_stage:
-        from lidar_iris_eval.evaluation.band import restrict_matches
-
         matches = match_protocol1(descriptor, descriptors, limits, settings, progress, executor)
         return matches, tuple(restrict_matches(matches, lim) for lim in band_limits)
     stacked = np.vstack([limits[None, :], np.asarray(band_limits, dtype=np.int64)])
@@ -414,3 +412,15 @@ def protocol1(
                                     progress, executor)
     return with_band(score_protocol1(matches, positions, gt, forward=forward,
                                      lidar_poses=lidar_poses, **scoring_rules(settings)), band)
+
+
+def restrict_matches(matches, limits: np.ndarray):
+    """The run's own matches on the queries of ``limits`` (presets whose windows equal the
+    run's on those queries: same database, same best match)."""
+    from dataclasses import replace
+
+    own = limits[matches.query] >= 0
+    return replace(matches, query=matches.query[own], match=matches.match[own],
+                   distance=matches.distance[own], yaw_deg=matches.yaw_deg[own],
+                   pose=None if matches.pose is None else matches.pose[own],
+                   inliers=None if matches.inliers is None else matches.inliers[own])

@@ -88,10 +88,7 @@ class SessionsEvaluation:
             "descriptors": [{"name": d.name, "preset": d.preset, "params": params_dict(d.params)}
                             for d, *_ in self.results],
             "protocols": [PROTOCOL],
-            "radius": float(s.radius),
-            "exclude": {"value": None, "preset": PROTOCOL},
-            "distance": s.distance,
-            "pose_frame": self.pose_frame,
+            "pose_frame": self.pose_frame,  # the frame used; the rules: `convention`
             "candidates": s.candidates,
             "align": None if self.transform is None else self.transform.tolist(),
             "convention": s.to_dict(),

@@ -312,15 +312,44 @@ def count_block(acc: StreamingPR, pp: PositivePredictions, expected: np.ndarray,
     return got, mismatch
 
 
-class _Sink:
-    """Receives each block of the pass: checks and masks positives, counts negatives, stores."""
+class CountNegatives:
+    """Block-pass reducer (:class:`~lidar_iris_eval.matching.blocks.Reducer`): checks and
+    masks each block's positives, counts its negatives into a :class:`StreamingPR`.
+
+    Each part is a fresh accumulator of one block (exact integer sums and
+    extrema), so a block computed in another process merges bit for bit.
+    """
+
+    timed = False
 
     def __init__(self, acc: StreamingPR, positives: PositivePredictions, expected: np.ndarray,
-                 symmetric: bool, n: int, storage: str):
-        self.acc, self.pp, self.expected = acc, positives, expected
-        self.symmetric, self.n, self.storage = symmetric, n, storage
+                 symmetric: bool):
+        self.acc, self.pp, self.expected, self.symmetric = acc, positives, expected, symmetric
         self.gathered = np.empty_like(expected)
         self.mismatch = False
+
+    def part(self, rows, d, y):
+        a, b = int(rows[0]), int(rows[-1]) + 1
+        acc = self.acc.fresh()
+        got, mismatch = count_block(acc, self.pp, self.expected, self.symmetric, a, b,
+                                    np.asarray(d).astype(np.float32))
+        return a, b, acc, got, mismatch
+
+    def merge(self, part) -> None:
+        a, b, acc, got, mismatch = part
+        self.acc.merge(acc)
+        self.gathered[self.pp.in_rows(a, b)] = got
+        self.mismatch |= bool(mismatch)
+
+
+class KeepAffinity:
+    """Block-pass reducer keeping the affinity :func:`stream_protocol2` was asked to keep
+    (full float32 / float16, decimated float16 or none), from float32 blocks."""
+
+    timed = False
+
+    def __init__(self, symmetric: bool, n: int, storage: str):
+        self.symmetric, self.n, self.storage = symmetric, n, storage
         self.matrix = None
         self.decimated = None
         self.step = 1
@@ -331,13 +360,12 @@ class _Sink:
             side = -(-n // self.step)
             self.decimated = np.full((side, side), np.nan, dtype=np.float16)
 
-    def __call__(self, a: int, b: int, d: np.ndarray) -> None:
-        d32 = np.asarray(d).astype(np.float32)
-        self._store(a, b, d32)
-        sel = self.pp.in_rows(a, b)
-        self.gathered[sel], mismatch = count_block(self.acc, self.pp, self.expected,
-                                                   self.symmetric, a, b, d32)
-        self.mismatch |= mismatch
+    def part(self, rows, d, y):
+        return int(rows[0]), int(rows[-1]) + 1, d
+
+    def merge(self, part) -> None:
+        a, b, d = part
+        self._store(a, b, np.asarray(d).astype(np.float32))
 
     def _store(self, a: int, b: int, d32: np.ndarray) -> None:
         if self.matrix is not None:
@@ -375,6 +403,7 @@ class _Sink:
             np.fill_diagonal(self.decimated, np.nan)
 
 
+
 def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pairs: int,
                      exclude=None, pair_budget: int | None = None,
                      progress=None, storage: str = "auto", executor=None):
@@ -403,7 +432,13 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     import time
 
     from lidar_iris_eval.errors import warn
-    from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET, affinity_matrix
+    from lidar_iris_eval.matching.blocks import (
+        DEFAULT_PAIR_BUDGET,
+        BestInRow,
+        block_pass,
+        row_blocks,
+        warm_up,
+    )
 
     budget = DEFAULT_PAIR_BUDGET if pair_budget is None else pair_budget
     n = len(descriptors)
@@ -415,142 +450,35 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     expected, pre_evaluations = positive_values(descriptor, descriptors, pp, count=True)
     pre_s = time.perf_counter() - start
     kind = resolve_storage(storage, n)
-    if exclude is not None:
-        from lidar_iris_eval.matching.blocks import stack_limits
-
-        stacked, several = stack_limits(n, exclude)  # several: --convention-band
-        exclude = stacked if several else stacked[0]
-    if executor is not None and executor.distributes_blocks:
-        kept = kind if storage != "auto" else "none"  # auto: nothing to warn about
-        return _stream_on_cluster(executor, descriptor, descriptors, pp, expected,
-                                  n_positive_pairs, exclude, budget, progress, kept,
-                                  pre_s, pre_evaluations)
-    sink = _Sink(StreamingPR(expected, pp.weight), pp, expected, symmetric, n, kind)
-    affinity, matches = affinity_matrix(descriptor, descriptors, exclude, budget, progress,
-                                        sink=sink, store=False)
-    sink.finish()
-    seconds, evaluations = affinity.seconds + pre_s, affinity.n_evaluations + pre_evaluations
-    passes, acc = 1, sink.acc
-    if sink.mismatch:  # batched numbers depend on the batch: redo with the pass's own values
+    distributed = executor is not None and executor.distributes_blocks
+    if distributed:  # blocks return reductions only: no affinity comes back
+        if storage != "auto" and kind != "none" and n > 0:
+            warn("protocol 2 on a Dask cluster", f"blocks return counts only; the {kind} "
+                 "affinity is not kept (metrics are exact and complete)")
+        kind = "none"
+    else:
+        warm_up(descriptor, descriptors)
+    blocks = row_blocks(n, budget, symmetric)
+    count = CountNegatives(StreamingPR(expected, pp.weight), pp, expected, symmetric)
+    keep = KeepAffinity(symmetric, n, kind)
+    best = BestInRow(n, exclude) if exclude is not None else None  # (K, N): --convention-band
+    reducers = ([keep] if kind != "none" else []) + [count] + ([best] if best else [])
+    evaluations, seconds = block_pass(descriptor, descriptors, blocks, reducers, executor,
+                                      progress)
+    keep.finish()
+    matches = best.result(seconds, evaluations, "affinity") if best is not None else None
+    seconds, evaluations = seconds + pre_s, evaluations + pre_evaluations
+    passes, acc = 1, count.acc
+    if count.mismatch:  # batched numbers depend on the batch: redo with the pass's own values
         warn(f"{descriptor.name} protocol 2",
              "pairwise distances of the positive pairs differ between batch shapes; "
              "counting the negatives again against the block values (a second pass)")
-        gathered = sink.gathered.copy()
-        second = _Sink(StreamingPR(gathered, pp.weight), pp, gathered, symmetric, n, "none")
-        again, _ = affinity_matrix(descriptor, descriptors, None, budget, None,
-                                   sink=second, store=False)
-        seconds, evaluations, passes, acc = (seconds + again.seconds,
-                                             evaluations + again.n_evaluations, 2, second.acc)
+        gathered = count.gathered.copy()
+        second = CountNegatives(StreamingPR(gathered, pp.weight), pp, gathered, symmetric)
+        more, again_s = block_pass(descriptor, descriptors, blocks, [second], executor)
+        seconds, evaluations, passes, acc = (seconds + again_s, evaluations + more, 2,
+                                             second.acc)
     affinity = StreamedAffinity(
-        matrix=sink.matrix, seconds=seconds, n_evaluations=evaluations, symmetric=symmetric,
-        decimated=sink.decimated, step=sink.step, storage=kind, passes=passes)
+        matrix=keep.matrix, seconds=seconds, n_evaluations=evaluations, symmetric=symmetric,
+        decimated=keep.decimated, step=keep.step, storage=kind, passes=passes)
     return affinity, acc.curve(n_positive_pairs), matches
-
-
-def _stream_on_cluster(engine, descriptor, descriptors, pp, expected, n_positive_pairs,
-                       exclude, budget, progress, kind, pre_s, pre_evaluations):
-    """:func:`stream_protocol2` with every block a Dask task returning reductions only.
-
-    No affinity comes back from the cluster (``storage`` is ``none``; a
-    warning says so when another was asked for).
-    """
-    import time
-
-    from lidar_iris_eval.errors import warn
-    from lidar_iris_eval.matching.blocks import block_rows, query_blocks
-
-    n = len(descriptors)
-    if kind != "none" and n > 0:
-        warn("protocol 2 on a Dask cluster", f"blocks return counts only; the {kind} "
-             "affinity is not kept (metrics are exact and complete)")
-    blocks = list(query_blocks(0, n, block_rows(n, budget)))
-    start = time.perf_counter()
-    res = stream_blocks(engine, descriptor, descriptors, StreamingPR(expected, pp.weight), pp,
-                        expected, blocks, exclude, progress)
-    passes, evaluations = 1, res["evaluations"] + pre_evaluations
-    if res["mismatch"]:
-        warn(f"{descriptor.name} protocol 2",
-             "pairwise distances of the positive pairs differ between batch shapes; "
-             "counting the negatives again against the block values (a second pass)")
-        gathered = res["gathered"]
-        again = stream_blocks(engine, descriptor, descriptors, StreamingPR(gathered, pp.weight),
-                              pp, gathered, blocks, None, None)
-        res["acc"], passes = again["acc"], 2
-        evaluations += again["evaluations"]
-    seconds = time.perf_counter() - start + pre_s
-    matches = None
-    if exclude is not None:
-        from lidar_iris_eval.matching.blocks import split_matches
-
-        match, dist, yaw = res["p1"]
-        stacked = np.atleast_2d(exclude)
-        queries = np.flatnonzero(stacked.max(axis=0) >= 0)
-        matches = split_matches(stacked, queries, np.atleast_2d(match)[:, queries],
-                                np.atleast_2d(dist)[:, queries], np.atleast_2d(yaw)[:, queries],
-                                seconds, evaluations, "affinity")
-        matches = matches if np.ndim(exclude) == 2 else matches[0]
-    affinity = StreamedAffinity(matrix=None, seconds=seconds, n_evaluations=evaluations,
-                                symmetric=bool(descriptor.symmetric), storage="none",
-                                passes=passes)
-    return affinity, res["acc"].curve(n_positive_pairs), matches
-
-
-# ------------------------------------------------------------ blocks as executor tasks
-def protocol2_block(descriptor, descriptors, template: StreamingPR, pp: PositivePredictions,
-                    expected: np.ndarray, limits: np.ndarray | None, a: int, b: int) -> dict:
-    """One block of rows ``[a, b)``: negative counts, positives, protocol 1 best matches.
-
-    The block boundaries and arithmetic are those of the local pass, and the
-    reductions merge exactly (integer sums, minima), so a distributed run
-    gives the local run's metrics bit for bit.
-    """
-    import time
-
-    from lidar_iris_eval.matching.blocks import _pairwise, best_in_block
-
-    symmetric = bool(descriptor.symmetric)
-    n = len(descriptors)
-    width = b if symmetric else n
-    start = time.perf_counter()
-    d, y = _pairwise(descriptor, descriptors[a:b], descriptors[:width])
-    seconds = time.perf_counter() - start
-    out = {"a": a, "b": b, "evaluations": d.size, "seconds": seconds}
-    if limits is not None:  # (N,) limits, or (K, N) under --convention-band
-        rows = np.flatnonzero(np.atleast_2d(limits).max(axis=0)[a:b] >= 0)
-        if len(rows):
-            out["p1"] = (a + rows, *best_in_block(d[rows], y[rows], limits[..., a + rows]))
-    acc = template.fresh()
-    out["positives"], out["mismatch"] = count_block(acc, pp, expected, symmetric, a, b,
-                                                    d.astype(np.float32))
-    out["counts"] = acc
-    return out
-
-
-def stream_blocks(executor, descriptor, descriptors, template: StreamingPR,
-                  pp: PositivePredictions, expected: np.ndarray, blocks: list,
-                  limits: np.ndarray | None, progress) -> dict:
-    """Run every block through ``executor`` and merge the reductions (exactly)."""
-    n = len(descriptors)
-    acc = template.fresh()
-    gathered = np.empty_like(expected)
-    mismatch = False
-    evaluations, seconds = 0, 0.0
-    p1 = None
-    if limits is not None:
-        shape = np.shape(limits)[:-1] + (n,)
-        p1 = (np.full(shape, -1, dtype=np.int64), np.full(shape, np.inf),
-              np.full(shape, np.nan))
-    shared = (descriptor, descriptors, template, pp, expected, limits)
-    for _, r in executor.imap(protocol2_block, blocks, shared=shared):
-        acc.merge(r["counts"])
-        gathered[pp.in_rows(r["a"], r["b"])] = r["positives"]
-        mismatch |= bool(r["mismatch"])
-        evaluations += int(r["evaluations"])
-        seconds += float(r["seconds"])
-        if p1 is not None and "p1" in r:
-            rows, match, dist, yaw = r["p1"]
-            p1[0][..., rows], p1[1][..., rows], p1[2][..., rows] = match, dist, yaw
-        if progress is not None:
-            progress(r["b"] - r["a"])
-    return {"acc": acc, "gathered": gathered, "mismatch": mismatch, "p1": p1,
-            "evaluations": evaluations, "task_seconds": seconds}

@@ -9,8 +9,12 @@ float64 at once, and turns the blocks into
 * the full ``(N, N)`` float32 affinity matrix (protocol 2),
 
 or both from one pass, so a run with both protocols computes each distance
-once. Protocol 1 best matches are always taken from the float64 block values,
-so they are identical whichever path computed them. ``progress`` (optional)
+once. Every pass is :func:`block_pass` with a list of reducers
+(:class:`Reducer`: :class:`BestInRow`, :class:`StoreMatrix`, :class:`CallSink`
+here; protocol 2's counters and stores in evaluation/streaming_pr.py), run in
+this process or by an executor that distributes blocks. Protocol 1 best
+matches are always taken from the float64 block values, so they are
+identical whichever path computed them. ``progress`` (optional)
 is called with the number of query rows finished after each block, e.g. a
 tqdm bar's ``update``.
 
@@ -92,7 +96,7 @@ def query_blocks(start: int, stop: int, rows: int) -> Iterator[tuple[int, int]]:
         yield a, min(a + rows, stop)
 
 
-def warm_up(descriptor: Descriptor, descriptors, candidates: int | None = None) -> None:
+def warm_up(descriptor: Descriptor, descriptors) -> None:
     """Run the matching kernels once on two descriptors, untimed.
 
     The first call of a numba kernel compiles it (or loads it from numba's
@@ -102,11 +106,7 @@ def warm_up(descriptor: Descriptor, descriptors, candidates: int | None = None) 
     """
     if len(descriptors) < 2:
         return
-    if candidates is None:  # the exhaustive loops: the batched kernel only
-        _pairwise(descriptor, descriptors[:1], descriptors[:2])
-        return
-    descriptor.candidates(descriptors[:1], descriptors[:2], 1)  # the retrieval loop
-    descriptor.distances(descriptors[0], descriptors[:2])
+    _pairwise(descriptor, descriptors[:1], descriptors[:2])
 
 
 def _pairwise(descriptor: Descriptor, queries, database) -> tuple[np.ndarray, np.ndarray]:
@@ -240,15 +240,166 @@ def query_row_blocks(limits: np.ndarray, pair_budget: int) -> list[np.ndarray]:
     return [queries[a : a + rows] for a in range(0, len(queries), rows)]
 
 
-def protocol1_block(descriptor: Descriptor, descriptors, q: np.ndarray, lim: np.ndarray):
-    """Best matches of queries ``q`` over ``j <= lim`` (one block; also a Dask task).
+# --------------------------------------------------------------- the one block pass
+class Reducer:
+    """What a block pass does with each block of distances (see :func:`block_pass`).
 
-    The database is ``[0, max(lim) + 1)``, what the block's last query may
-    see; returns ``(evaluations, match, distance, yaw)``.
+    ``part(rows, d, y)`` runs where the block was computed (in this process,
+    or in a Dask worker on a copy of the reducer as it was when the pass
+    started) and returns a small picklable reduction of the float64 block
+    ``d`` (rows ``rows`` of the queries x the first ``d.shape[1]`` database
+    frames) and its yaws ``y``; ``merge(part)`` folds it into the reducer in
+    this process. ``timed = False`` keeps a reducer's own time out of the
+    matching time (the protocol 2 counters and stores).
     """
-    database = descriptors[: int(lim.max()) + 1]
-    d, y = _pairwise(descriptor, _rows(descriptors, q), database)
-    return d.size, *best_in_block(d, y, lim)
+
+    timed: bool = True
+
+    def part(self, rows: np.ndarray, d: np.ndarray, y: np.ndarray):  # pragma: no cover
+        raise NotImplementedError
+
+    def merge(self, part) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+
+class BestInRow(Reducer):
+    """Protocol 1: the best column ``j <= limits[i]`` of each query row (ties: smallest j).
+
+    ``window`` is E, ``(N,)`` limits, or ``(K, N)`` limits (``--convention-band``):
+    then every row is reduced under all ``K`` at once (one prefix minimum) and
+    :meth:`result` gives ``K`` :class:`BestMatches`.
+    """
+
+    def __init__(self, n: int, window):
+        self.stacked, self.several = stack_limits(n, window)
+        self.union = self.stacked.max(axis=0)
+        shape = (len(self.stacked), n)
+        self.match = np.full(shape, -1, dtype=np.int64)
+        self.dist = np.full(shape, np.inf)
+        self.yaw = np.full(shape, np.nan)
+
+    def part(self, rows, d, y):
+        sel = np.flatnonzero(self.union[rows] >= 0)
+        if len(sel) == 0:
+            return None
+        if len(sel) < len(rows):
+            rows, d, y = rows[sel], d[sel], y[sel]
+        if self.several:
+            return rows, *_best_under_limits(d, y, self.stacked[:, rows])
+        return rows, *_best_in_block(d, y, self.stacked[0, rows])
+
+    def merge(self, part) -> None:
+        if part is not None:
+            rows, match, dist, yaw = part
+            self.match[:, rows], self.dist[:, rows], self.yaw[:, rows] = match, dist, yaw
+
+    def blocks(self, pair_budget: int) -> list[tuple[np.ndarray, int]]:
+        """Protocol 1's own blocks: runs of queries against what their last one may see."""
+        return [(q, int(self.union[q].max()) + 1)
+                for q in query_row_blocks(self.union, pair_budget)]
+
+    def result(self, seconds: float, evaluations: int, source: str):
+        """The :class:`BestMatches` (a list of ``K`` under ``(K, N)`` limits)."""
+        queries = np.flatnonzero(self.union >= 0)
+        out = split_matches(self.stacked, queries, self.match[:, queries],
+                            self.dist[:, queries], self.yaw[:, queries], seconds,
+                            evaluations, source)
+        return out if self.several else out[0]
+
+
+class StoreMatrix(Reducer):
+    """The ``(N, N)`` float32 affinity; a symmetric descriptor's lower triangle, mirrored.
+
+    Local passes only (``part`` returns the whole block).
+    """
+
+    def __init__(self, n: int, symmetric: bool):
+        self.matrix = np.empty((n, n), dtype=np.float32)
+        self.symmetric = symmetric
+
+    def part(self, rows, d, y):
+        return int(rows[0]), int(rows[-1]) + 1, d
+
+    def merge(self, part) -> None:
+        a, b, d = part
+        if self.symmetric:
+            _fill_symmetric(self.matrix, d, a, b)
+        else:
+            self.matrix[a:b] = d
+
+    def finish(self) -> np.ndarray:
+        np.fill_diagonal(self.matrix, np.nan)
+        return self.matrix
+
+
+class CallSink(Reducer):
+    """``sink(a, b, d)`` on every block (rows ``[a, b)``), in this process; untimed."""
+
+    timed = False
+
+    def __init__(self, sink: Callable[[int, int, np.ndarray], object]):
+        self.sink = sink
+
+    def part(self, rows, d, y):
+        return int(rows[0]), int(rows[-1]) + 1, d
+
+    def merge(self, part) -> None:
+        self.sink(*part)
+
+
+def _block_task(descriptor, queries, database, reducers, rows, width):
+    """One block: its distances once, then every reducer's part (also a Dask task)."""
+    database = queries if database is None else database
+    d, y = _pairwise(descriptor, _rows(queries, rows), database[:width])
+    return d.size, [r.part(rows, d, y) for r in reducers]
+
+
+def block_pass(descriptor: Descriptor, descriptors, blocks, reducers, executor=None,
+               progress: Callable[[int], object] | None = None, database=None
+               ) -> tuple[int, float]:
+    """The one block loop: each block's distances computed once, handed to every reducer.
+
+    ``blocks`` are ``(rows, width)``: query indices (a contiguous run is read
+    as a slice) against database frames ``[0, width)``. ``database`` is the
+    descriptors queries are matched against (another session's); default the
+    queries' own. ``executor`` (:mod:`lidar_iris_eval.executor`), when it
+    distributes blocks (Dask), runs each block as a task returning the
+    reducers' parts only; merges are exact, so the results do not change.
+    Returns ``(evaluations, seconds)``: distances computed and matching wall
+    time (without the untimed reducers' time).
+    """
+    reducers = list(reducers)
+    evaluations, untimed = 0, 0.0
+    start = time.perf_counter()
+    if executor is not None and executor.distributes_blocks:
+        shared = (descriptor, descriptors, database, tuple(reducers))
+        for index, (size, parts) in executor.imap(_block_task, blocks, shared=shared):
+            for reducer, part in zip(reducers, parts, strict=True):
+                reducer.merge(part)
+            evaluations += int(size)
+            if progress is not None:
+                progress(len(blocks[index][0]))
+        return evaluations, time.perf_counter() - start
+    target = descriptors if database is None else database
+    for rows, width in blocks:
+        d, y = _pairwise(descriptor, _rows(descriptors, rows), target[:width])
+        evaluations += d.size
+        for reducer in reducers:
+            if reducer.timed:
+                reducer.merge(reducer.part(rows, d, y))
+            else:
+                began = time.perf_counter()
+                reducer.merge(reducer.part(rows, d, y))
+                untimed += time.perf_counter() - began
+        if progress is not None:
+            progress(len(rows))
+    return evaluations, time.perf_counter() - start - untimed
+
+
+def row_blocks(n: int, pair_budget: int, symmetric: bool) -> list[tuple[np.ndarray, int]]:
+    """The all-pairs blocks: rows ``[a, b)`` against ``[0, b)`` (symmetric) or ``[0, n)``."""
+    return [(np.arange(a, b), b if symmetric else n)
+            for a, b in query_blocks(0, n, block_rows(n, pair_budget))]
 
 
 def best_matches(
@@ -271,35 +422,12 @@ def best_matches(
     over the union of their queries and databases, and a list of ``K``
     :class:`BestMatches`, each equal to a search under its own limits.
     """
-    n = len(descriptors)
-    stacked, several = stack_limits(n, exclude)
-    union = stacked.max(axis=0)
-    queries = np.flatnonzero(union >= 0)
-    k_lim = len(stacked)
-    match = np.empty((k_lim, len(queries)), dtype=np.int64)
-    dist = np.empty((k_lim, len(queries)))
-    yaw = np.empty((k_lim, len(queries)))
-    evaluations = 0
-    blocks = query_row_blocks(union, pair_budget)
-    distributed = executor is not None and executor.distributes_blocks
-    if not distributed:
+    best = BestInRow(len(descriptors), exclude)
+    if executor is None or not executor.distributes_blocks:
         warm_up(descriptor, descriptors)  # compilation is not matching cost
-    start = time.perf_counter()
-    offsets = np.cumsum([0] + [len(q) for q in blocks])
-    tasks = [(q, stacked[:, q] if several else stacked[0, q]) for q in blocks]
-    if distributed:
-        done = executor.imap(protocol1_block, tasks, shared=(descriptor, descriptors))
-    else:
-        done = ((i, protocol1_block(descriptor, descriptors, *t)) for i, t in enumerate(tasks))
-    for index, (size, m, d, y) in done:
-        k = slice(offsets[index], offsets[index + 1])
-        match[:, k], dist[:, k], yaw[:, k] = m, d, y
-        evaluations += int(size)
-        if progress is not None:
-            progress(len(blocks[index]))
-    seconds = time.perf_counter() - start
-    out = split_matches(stacked, queries, match, dist, yaw, seconds, evaluations, "exhaustive")
-    return out if several else out[0]
+    evaluations, seconds = block_pass(descriptor, descriptors, best.blocks(pair_budget), [best],
+                                      executor, progress)
+    return best.result(seconds, evaluations, "exhaustive")
 
 
 def affinity_matrix(
@@ -322,56 +450,25 @@ def affinity_matrix(
     Otherwise every row is computed against every column.
 
     ``sink(a, b, d)``, if given, receives every float64 block (rows ``[a, b)``,
-    columns ``[0, width)``), e.g. the streaming PR counter of
-    :mod:`~lidar_iris_eval.evaluation.streaming_pr`; its time is not counted as
-    matching time. ``store=False`` keeps no matrix (``Affinity.matrix`` is None),
-    so memory stays O(N) plus one block.
+    columns ``[0, width)``); its time is not counted as matching time.
+    ``store=False`` keeps no matrix (``Affinity.matrix`` is None), so memory
+    stays O(N) plus one block. One :func:`block_pass` with the reducers asked for.
     """
     n = len(descriptors)
-    stacked, several = stack_limits(n, exclude) if exclude is not None else (None, False)
-    limits = stacked.max(axis=0) if stacked is not None else None
     symmetric = bool(descriptor.symmetric)
-    matrix = np.empty((n, n), dtype=np.float32) if store else None
-    k_lim = 0 if stacked is None else len(stacked)
-    p1_match = np.full((k_lim, n), -1, dtype=np.int64)
-    p1_dist = np.full((k_lim, n), np.inf)
-    p1_yaw = np.full((k_lim, n), np.nan)
-    evaluations = 0
-    sink_s = 0.0
-    # a symmetric pass holds at most b columns per row; size blocks for the worst case
-    rows_per_block = block_rows(n, pair_budget)
+    matrix = StoreMatrix(n, symmetric) if store else None
+    best = BestInRow(n, exclude) if exclude is not None else None
+    reducers = [r for r in (matrix, CallSink(sink) if sink is not None else None, best)
+                if r is not None]
     warm_up(descriptor, descriptors)  # compilation is not matching cost
-    start = time.perf_counter()
-    for a, b in query_blocks(0, n, rows_per_block):
-        width = b if symmetric else n
-        d, y = _pairwise(descriptor, descriptors[a:b], descriptors[:width])
-        evaluations += d.size
-        if matrix is not None and symmetric:
-            _fill_symmetric(matrix, d, a, b)
-        elif matrix is not None:
-            matrix[a:b] = d
-        if sink is not None:
-            sink_start = time.perf_counter()
-            sink(a, b, d)
-            sink_s += time.perf_counter() - sink_start
-        if limits is not None:
-            rows = np.flatnonzero(limits[a:b] >= 0)
-            if len(rows):
-                p1_match[:, a + rows], p1_dist[:, a + rows], p1_yaw[:, a + rows] = \
-                    _best_under_limits(d[rows], y[rows], stacked[:, a + rows]) if several \
-                    else _best_in_block(d[rows], y[rows], stacked[0, a + rows])
-        if progress is not None:
-            progress(b - a)
-    if matrix is not None:
-        np.fill_diagonal(matrix, np.nan)
-    seconds = time.perf_counter() - start - sink_s
-    affinity = Affinity(matrix, seconds, evaluations, symmetric)
-    if limits is None:
+    evaluations, seconds = block_pass(descriptor, descriptors,
+                                      row_blocks(n, pair_budget, symmetric), reducers,
+                                      progress=progress)
+    affinity = Affinity(matrix.finish() if matrix is not None else None, seconds, evaluations,
+                        symmetric)
+    if best is None:
         return affinity, None
-    queries = np.flatnonzero(limits >= 0)
-    matches = split_matches(stacked, queries, p1_match[:, queries], p1_dist[:, queries],
-                            p1_yaw[:, queries], seconds, evaluations, "affinity")
-    return affinity, matches if several else matches[0]
+    return affinity, best.result(seconds, evaluations, "affinity")
 
 
 def _fill_symmetric(matrix: np.ndarray, d: np.ndarray, a: int, b: int) -> None:

@@ -109,6 +109,13 @@ def _yaml_value(value: Any) -> str:
         "\n...").strip()
 
 
+def replayed_convention(config: dict[str, Any]) -> dict[str, Any] | None:
+    """The run's ``convention`` block (``Settings.to_dict``), or None for a run written
+    before it held every rule (such a run replays from its flat keys)."""
+    block = config.get("convention")
+    return dict(block) if isinstance(block, dict) and "radius" in block else None
+
+
 def _poses_only(sequence: dict[str, Any]) -> bool:
     """True for a ``liris eval --poses P --loops F`` run: its "sequence" is the pose file."""
     poses = (sequence.get("reader_options") or {}).get("poses")
@@ -140,7 +147,14 @@ def _loop_sources(sources: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def config_defaults(config: dict[str, Any]) -> dict[str, Any]:
-    """``liris eval`` option values (by parameter name) that rerun ``config``."""
+    """``liris eval`` option values (by parameter name) that rerun ``config``.
+
+    The ground-truth rules are not among them when the run has a full
+    ``convention`` block: ``--config`` rebuilds those with
+    ``Settings.from_dict`` (:func:`replayed_convention`), since several rules
+    (``inclusive_radius``, ``not_revisit_radius``, ``last_frame_query``, ...)
+    have no option. Older runs replay from their flat keys.
+    """
     out: dict[str, Any] = {}
     sequence = config.get("sequence") or {}
     if sequence.get("path") and not _poses_only(sequence):
@@ -175,20 +189,10 @@ def config_defaults(config: dict[str, Any]) -> dict[str, Any]:
             out["external_metric"] = metrics.pop()
     if config.get("sensor"):
         out["sensor"] = config["sensor"]
-    convention = config.get("convention") or {}
-    base = str(convention.get("preset") or "").split("+")[0]
-    if base and base != "custom":  # "<preset>+custom": the preset, then the values below
-        out["convention_name"] = base
-    if config.get("radius") is not None:
-        out["radius"] = config["radius"]
-    exclude = config.get("exclude") or {}
-    if convention.get("exclude_seconds") is not None:
-        out["exclude"] = f"{convention['exclude_seconds']:g}s"
-    elif exclude.get("value") is not None:
-        out["exclude"] = str(exclude["value"])
-    for key in ("distance", "pose_frame", "recall_denominator", "candidates"):
-        if config.get(key) is not None:
-            out[key] = config[key]
+    if replayed_convention(config) is None:  # a run from before the full convention block
+        _flat_convention_defaults(config, out)
+    if config.get("candidates") is not None:
+        out["candidates"] = config["candidates"]
     if config.get("block_pairs") is not None:
         out["block_pairs"] = config["block_pairs"]
     loops = config.get("loop_poses") or {}  # issue 23 (evaluation/loop_poses.py)
@@ -204,3 +208,21 @@ def config_defaults(config: dict[str, Any]) -> dict[str, Any]:
         if key in READER_PARAMS:
             out[READER_PARAMS[key]] = value
     return out
+
+
+def _flat_convention_defaults(config: dict[str, Any], out: dict[str, Any]) -> None:
+    """Old runs: the ground-truth options from config.yaml's flat keys (and the preset name)."""
+    convention = config.get("convention") or {}
+    base = str(convention.get("preset") or "").split("+")[0]
+    if base and base != "custom":  # "<preset>+custom": the preset, then the values below
+        out["convention_name"] = base
+    if config.get("radius") is not None:
+        out["radius"] = config["radius"]
+    exclude = config.get("exclude") or {}
+    if convention.get("exclude_seconds") is not None:
+        out["exclude"] = f"{convention['exclude_seconds']:g}s"
+    elif exclude.get("value") is not None:
+        out["exclude"] = str(exclude["value"])
+    for key in ("distance", "pose_frame", "recall_denominator"):
+        if config.get(key) is not None:
+            out[key] = config[key]

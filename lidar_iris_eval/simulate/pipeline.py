@@ -158,7 +158,7 @@ def build_scenario(cfg: SimConfig, world_params: WorldParams | None = None, sess
                                 rp.tilt_noise_deg)
         line = xy
     if session > 0:
-        from lidar_iris_eval.simulate.sessions import repark
+        from lidar_iris_eval.simulate.parked import repark
 
         world = repark(world, np.random.default_rng(stream_key(cfg.seed, _S_PARKED, session)))
     traffic = None

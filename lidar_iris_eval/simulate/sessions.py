@@ -35,59 +35,22 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.simulate import labels
+from lidar_iris_eval.simulate.parked import PARKED_GONE, PARKED_SHIFT, repark
 from lidar_iris_eval.simulate.presets import SimConfig
-from lidar_iris_eval.simulate.raycast import Primitives, make_primitives
 from lidar_iris_eval.simulate.sensors import SENSORS
-from lidar_iris_eval.simulate.world import World, car_rows
 from lidar_iris_eval.simulate.writer import atomic_write, check_out_dir, prepare_out_dir
 
-#: probability that a parked car of session 0 is not there on another day
-PARKED_GONE = 0.5
-#: metres a replacing car may stand further along the kerb (either way)
-PARKED_SHIFT = 0.5
 #: the most sessions ``liris simulate`` writes
 MAX_SESSIONS = 8
+
+
+__all__ = ["MAX_SESSIONS", "PARKED_GONE", "PARKED_SHIFT", "SessionsReport", "repark",
+           "run_sessions", "session_dir", "session_sensors"]
 
 
 def session_dir(out_dir: Path, session: int) -> Path:
     """``OUT/session<k>``."""
     return Path(out_dir) / f"session{session}"
-
-
-def repark(world: World, rng: np.random.Generator) -> World:
-    """The same static world with other parked cars (see the module docstring).
-
-    Parked cars are the static primitives labelled ``car``; a replacing car
-    keeps its SemanticKITTI instance number and gets a new physical-object id.
-    """
-    prims = world.prims
-    objects = world.objects
-    is_car = prims.label == labels.CAR
-    keep = ~is_car
-    rows: list[tuple] = []
-    new_objects: list[int] = []
-    next_object = int(objects.max(initial=0)) + 1 if objects is not None else 1
-    for instance in np.unique(prims.instance[is_car]):
-        car = np.nonzero(is_car & (prims.instance == instance))[0]
-        if rng.random() < PARKED_GONE:
-            continue
-        body = car[0]
-        yaw = float(prims.yaw[body])
-        shift = rng.uniform(-PARKED_SHIFT, PARKED_SHIFT)
-        x = float(prims.center[body, 0]) + shift * np.cos(yaw)
-        y = float(prims.center[body, 1]) + shift * np.sin(yaw)
-        z_road = float(world.ground.elevation(np.array([x]), np.array([y]))[0][0])
-        parts = car_rows(rng, x, y, z_road, yaw, labels.CAR, int(instance))
-        rows.extend(parts)
-        new_objects.extend([next_object] * len(parts))
-        next_object += 1
-    merged = Primitives.concat([prims.take(np.nonzero(keep)[0]), make_primitives(rows)])
-    merged_objects = None
-    if objects is not None:
-        merged_objects = np.concatenate(
-            [objects[keep], np.asarray(new_objects, dtype=np.uint32)]).astype(np.uint32)
-    return World(world.ground, merged, merged_objects)
 
 
 def session_sensors(cfg: SimConfig, sessions: int, sensors: tuple[str, ...]) -> list[str]:

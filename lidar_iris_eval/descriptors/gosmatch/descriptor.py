@@ -57,7 +57,7 @@ except ImportError:  # pragma: no cover - only before the pipeline defines it
 
 @dataclass(frozen=True)
 class GOSMatchParams:
-    """GOSMatch parameters; see ``configs/descriptors/gosmatch.yaml`` for the presets.
+    """GOSMatch parameters; presets in ``lidar_iris_eval/descriptors/gosmatch/presets.yaml``.
 
     Descriptors (authors' code): ``bins`` x ``bin_width`` m; ``graph_pairs``
     ``ordered`` (code: ordered pairs + self-pairs in same-class blocks) or

@@ -35,7 +35,7 @@ Pipeline
    ``exhaustive``
        all ``sectors`` shifts: the oracle the others are tested against.
 
-Presets (``configs/descriptors/lidar-iris.yaml``)
+Presets (``lidar_iris_eval/descriptors/lidar_iris/presets.yaml``)
 -------------------------------------------------
 ``paper``
     The paper's description: 8 linear height bins between ``z_low`` and

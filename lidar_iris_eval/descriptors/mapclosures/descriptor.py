@@ -69,7 +69,7 @@ MAPS_SKIPPED = 3
 
 @dataclass(frozen=True)
 class MapClosuresParams:
-    """MapClosures parameters; presets in ``configs/descriptors/mapclosures.yaml``.
+    """MapClosures parameters; presets in ``lidar_iris_eval/descriptors/mapclosures/presets.yaml``.
 
     MapClosures' own (``config/basic_config.yaml`` of PRBonn/MapClosures):
     ``density_map_resolution`` m, ``density_threshold``,

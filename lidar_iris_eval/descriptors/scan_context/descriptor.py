@@ -6,7 +6,7 @@ A scan is voxel-downsampled, lifted by the sensor height and binned into
 Two descriptors are compared by ``1 - mean cosine`` over the columns
 (sectors) non-empty in both, minimised over circular column shifts.
 
-Presets (``configs/descriptors/scan-context.yaml``)
+Presets (``lidar_iris_eval/descriptors/scan_context/presets.yaml``)
 ---------------------------------------------------
 ``reference`` (default)
     The authors' C++ (``scancontext_tro/cpp/module/Scancontext``) fed with a
@@ -403,41 +403,13 @@ class ScanContext(Descriptor):
         return float(dist), float(yaw)
 
     # ------------------------------------------------------------------ retrieval
-    def candidates(
-        self, query_descs: np.ndarray, database_descs: np.ndarray, k: int | None = None
-    ) -> np.ndarray:
-        """Indices of the ``k`` database descriptors nearest in ring key, nearest first.
-
-        Parameters
-        ----------
-        query_descs : (Q,) descriptors
-        database_descs : (M,) descriptors (the allowed slice; exclusion is the caller's job)
-        k : int, optional
-            Candidates per query (default ``params.num_candidates``); capped at M.
-
-        Returns
-        -------
-        (Q, min(k, M)) int64 indices into ``database_descs``.
-        """
-        k = self.params.num_candidates if k is None else int(k)
-        if k < 1:
-            raise LirisError("--candidates", "must be at least 1")
-        q = self._records(query_descs, "queries")
-        m = self._records(database_descs, "database")
-        k = min(k, len(m))
-        if k == 0:
-            return np.empty((len(q), 0), dtype=np.int64)
-        tree = cKDTree(m["ring_key"])
-        _, idx = tree.query(q["ring_key"], k=k)
-        return np.asarray(idx, dtype=np.int64).reshape(len(q), k)
-
     def retrieve(
         self, db: np.ndarray, query: int, n_allowed: int, k: int
     ) -> tuple[np.ndarray, np.ndarray]:
         """Two-stage interface: the ``k`` frames of ``[0, n_allowed)`` nearest in ring key.
 
-        The same k-d tree search as :meth:`candidates` (a tree over the allowed
-        frames, as the C++ rebuilds it), returning ring-key distances too.
+        A k-d tree over the ring keys of the allowed frames (as the C++ rebuilds
+        it), returning ring-key distances too.
         """
         keys = self._records(db, "database")["ring_key"]
         k = min(int(k), int(n_allowed))

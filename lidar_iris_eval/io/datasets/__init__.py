@@ -58,9 +58,15 @@ class DatasetSpec:
     intensity: str = ""
 
     def open(self, path: Path, **options):
-        """Open ``path`` with this dataset's reader."""
+        """Open ``path`` with this dataset's reader.
+
+        ``opener`` names a module of this package (``"mulran:open_mulran"``), or,
+        for a reader outside it, any importable module (``"liris_mine.reader:open"``).
+        """
         module_name, func_name = self.opener.split(":")
-        module = importlib.import_module(f"lidar_iris_eval.io.datasets.{module_name}")
+        if (Path(__file__).parent / f"{module_name}.py").is_file():
+            module_name = f"lidar_iris_eval.io.datasets.{module_name}"
+        module = importlib.import_module(module_name)
         return getattr(module, func_name)(Path(path), **options)
 
 
@@ -372,17 +378,62 @@ DATASETS: dict[str, DatasetSpec] = {s.name: s for s in (
 )}
 
 
+def _plugin_spec(plugin) -> DatasetSpec:
+    """An external reader's spec, named by its entry; one LirisError if it is broken."""
+    import dataclasses
+
+    spec = plugin.load()
+    if not isinstance(spec, DatasetSpec):
+        raise LirisError(plugin.label, "is not a lidar_iris_eval.io.datasets.DatasetSpec")
+    return dataclasses.replace(spec, name=plugin.name)
+
+
+def all_datasets(strict: bool = True) -> dict[str, DatasetSpec]:
+    """:data:`DATASETS` and the external readers (entry points ``liris.datasets``,
+    ``LIRIS_DATASETS``; :mod:`lidar_iris_eval.plugins`), specific readers first and
+    the generic ones last, so an external layout is detected before a folder of scans.
+
+    ``strict=False`` (``liris datasets``) leaves out, with a warning, a reader
+    that cannot be loaded; otherwise it is one error naming it.
+    """
+    from lidar_iris_eval.errors import warn
+    from lidar_iris_eval.plugins import plugins
+
+    external = {}
+    try:
+        found = plugins("datasets", reserved=set(DATASETS))
+    except LirisError as err:
+        if strict:
+            raise
+        warn(err.source, err.problem)
+        found = []
+    for plugin in found:
+        try:
+            external[plugin.name] = _plugin_spec(plugin)
+        except LirisError as err:
+            if strict:
+                raise
+            warn(err.source, f"{err.problem}; not listed")
+    if not external:
+        return dict(DATASETS)
+    specific = {n: s for n, s in DATASETS.items() if not s.generic}
+    generic = {n: s for n, s in DATASETS.items() if s.generic}
+    return {**specific, **{n: s for n, s in external.items() if not s.generic},
+            **{n: s for n, s in external.items() if s.generic}, **generic}
+
+
 def dataset_names() -> list[str]:
     """Every registered name, specific datasets first."""
-    return list(DATASETS)
+    return list(all_datasets())
 
 
 def get_dataset(name: str) -> DatasetSpec:
     """The spec registered as ``name`` (one error listing the names otherwise)."""
-    spec = DATASETS.get(str(name).lower())
+    datasets = all_datasets()
+    spec = datasets.get(str(name).lower(), datasets.get(str(name)))
     if spec is None:
         raise LirisError(f"--dataset {name}",
-                         f"unknown dataset; choose from {', '.join(DATASETS)} (liris datasets)")
+                         f"unknown dataset; choose from {', '.join(datasets)} (liris datasets)")
     return spec
 
 
@@ -391,19 +442,21 @@ def find_dataset(path: Path, dataset: str | None = None) -> DatasetSpec:
     path = Path(path)
     if dataset is not None:
         return get_dataset(dataset)
-    specific = [s for s in DATASETS.values() if not s.generic and s.detect(path)]
+    datasets = all_datasets()
+    specific = [s for s in datasets.values() if not s.generic and s.detect(path)]
     if len(specific) > 1:
         names = " and ".join(f"{s.name} ({s.looks_for})" for s in specific)
         raise LirisError(path, f"ambiguous dataset layout: {names} both match; "
                                "choose one with --dataset NAME")
     if specific:
         return specific[0]
-    for spec in DATASETS.values():
+    for spec in datasets.values():
         if spec.generic and spec.detect(path):
             return spec
-    cues = "; ".join(f"{s.name}: {s.looks_for}" for s in DATASETS.values())
+    cues = "; ".join(f"{s.name}: {s.looks_for}" for s in datasets.values())
     raise LirisError(path, f"not a known dataset layout or folder of scans; looked for {cues} "
                            "(see liris datasets, or force one with --dataset NAME)")
 
 
-__all__ = ["DATASETS", "DatasetSpec", "dataset_names", "find_dataset", "get_dataset"]
+__all__ = ["DATASETS", "DatasetSpec", "all_datasets", "dataset_names", "find_dataset",
+           "get_dataset"]
