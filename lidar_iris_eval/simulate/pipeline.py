@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from lidar_iris_eval import __version__
@@ -25,6 +24,7 @@ from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 from lidar_iris_eval.simulate import labels
 from lidar_iris_eval.simulate.presets import SimConfig, manifest_config, resolve_config
 from lidar_iris_eval.simulate.raycast import Primitives
+from lidar_iris_eval.simulate.revisits import revisit_queries
 from lidar_iris_eval.simulate.sensors import SensorModel, get_sensor, simulate_scan
 from lidar_iris_eval.simulate.traffic import Traffic, make_traffic
 from lidar_iris_eval.simulate.trajectories import (
@@ -214,16 +214,6 @@ def _nature_scenario(cfg: SimConfig, session: int, sensor_name: str | None) -> S
     return Scenario(cfg, sensor, world, poses, None, default_tr())
 
 
-def revisit_queries(positions: np.ndarray, exclude: int = 30, radius: float = 4.0) -> np.ndarray:
-    """Indices i with some j <= i - ``exclude`` within ``radius`` (3-D distance)."""
-    tree = cKDTree(positions)
-    out = []
-    for i, nbrs in enumerate(tree.query_ball_point(positions, radius)):
-        if nbrs and min(nbrs) <= i - exclude:
-            out.append(i)
-    return np.asarray(out, dtype=np.int64)
-
-
 @dataclass(frozen=True)
 class SimReport:
     """What a simulation wrote, for the CLI's summary line."""
@@ -283,7 +273,10 @@ def run_simulation(
         if cfg.pushbroom is not None:
             from lidar_iris_eval.simulate.pushbroom import write_swathes
 
-            report = write_swathes(out_dir, scen, preset, start, progress, work)
+            frames, points, revisits, revisits_camera = write_swathes(
+                scen, preset, work, _class_names(cfg.world_style))
+            report = SimReport(out_dir, cfg, frames, points, revisits,
+                               time.perf_counter() - start, revisits_camera)
         else:
             report = write_scenario(out_dir, scen, preset, start, progress, work=work)
         publish(work, out_dir)

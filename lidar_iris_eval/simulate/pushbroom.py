@@ -136,17 +136,17 @@ def swathes(scenario, swathe_length: float = PAPER_SWATHE_LENGTH, line_spacing: 
 LINE_SPACING = 0.05
 
 
-def write_swathes(out_dir, scen, preset, start: float, progress: bool, work):
+def write_swathes(scen, preset, work, class_names: dict[int, str]):
     """``liris simulate --pushbroom L``: every swathe of ``L`` metres is one frame (KITTI
     layout: points in the platform frame of the swathe's last line, whose pose is the
     frame's; labels and object ids as for scans). Static world only (no moving cars).
-    Returns the :class:`~lidar_iris_eval.simulate.pipeline.SimReport`."""
+    Returns ``(frames, points, revisit queries, revisit queries on camera poses)`` for the
+    pipeline's :class:`~lidar_iris_eval.simulate.pipeline.SimReport`."""
     import dataclasses
-    import time
 
     from lidar_iris_eval import __version__
-    from lidar_iris_eval.simulate.pipeline import SimReport, _class_names, revisit_queries
     from lidar_iris_eval.simulate.presets import manifest_config
+    from lidar_iris_eval.simulate.revisits import revisit_queries
     from lidar_iris_eval.simulate.writer import write_metadata, write_scan
 
     cfg = scen.config
@@ -176,9 +176,8 @@ def write_swathes(out_dir, scen, preset, start: float, progress: bool, work):
                                "line; its pose is that line's platform pose"},
         "frames": len(found), "points": total,
         "revisit_queries_E1_half_swathe": int(len(revisits)),
-        "classes": {str(k): v for k, v in _class_names(cfg.world_style).items()},
+        "classes": {str(k): v for k, v in class_names.items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
     write_metadata(work, poses, scen.tr, manifest)
-    return SimReport(out_dir, cfg, len(found), total, len(revisits), time.perf_counter() - start,
-                     int(len(revisits_camera)))
+    return len(found), total, int(len(revisits)), int(len(revisits_camera))
