@@ -53,17 +53,84 @@ class SerialExecutor:
         for index, task in enumerate(tasks):
             yield index, fn(*shared, *task)
 
+    def imap_pool(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                  on_start: Callable[[int], None] | None = None
+                  ) -> Iterator[tuple[int, Any]]:
+        """Independent tasks in parallel where the executor has processes (here: in order).
+
+        ``fn`` and the tasks' arguments must pickle; ``shared`` reaches each
+        worker once. ``on_start(parent_pid)`` runs first in every worker (the
+        caller passes :func:`lidar_iris_eval.lifetime.die_with_parent`).
+        """
+        return self.imap(fn, tasks, shared)
+
     def describe(self) -> dict[str, Any]:
         return {"scheduler": self.scheduler, "workers": self.workers}
+
+
+# Per-process state of :meth:`ProcessExecutor.imap_pool` workers, set by the initializer.
+_POOL_SHARED: list[tuple] = [()]
+
+
+def _pool_start(shared: tuple, on_start, parent_pid: int) -> None:
+    if on_start is not None:
+        on_start(parent_pid)
+    _POOL_SHARED[0] = shared
+
+
+def _pool_call(fn: Callable, task: tuple) -> Any:
+    return fn(*_POOL_SHARED[0], *task)
+
+
+def stop_pool(pool) -> None:
+    """Stop a ``ProcessPoolExecutor`` now: queued tasks cancelled, running ones killed.
+
+    ``shutdown(wait=True)`` would wait for every running task (a compiled
+    call holding its worker for seconds), so a Ctrl-C would not stop the run
+    for that long; the workers ignore SIGINT (their parent reports it).
+    """
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.terminate()
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.join(timeout=1.0)
 
 
 @dataclass(frozen=True)
 class ProcessExecutor(SerialExecutor):
     """A local process pool of ``workers`` for extraction; blocks run in this process
-    (``imap`` is serial: a block pass shares one large descriptor array)."""
+    (``imap`` is serial: a block pass shares one large descriptor array).
+    :meth:`imap_pool` runs independent small tasks (registrations) on ``workers`` processes."""
 
     workers: int = 2
     serial: bool = False
+
+    def imap_pool(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                  on_start: Callable[[int], None] | None = None
+                  ) -> Iterator[tuple[int, Any]]:
+        if self.workers <= 1 or len(tasks) <= 1:
+            yield from self.imap(fn, tasks, shared)
+            return
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        pool = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)),
+                                   initializer=_pool_start,
+                                   initargs=(tuple(shared), on_start, os.getpid()))
+        finished = False
+        try:
+            futures = {pool.submit(_pool_call, fn, task): index
+                       for index, task in enumerate(tasks)}
+            for future in as_completed(futures):
+                yield futures[future], future.result()
+            finished = True
+        finally:
+            if finished:
+                pool.shutdown(wait=True)
+            else:  # an error, Ctrl-C or the consumer stopped: do not wait for running tasks
+                stop_pool(pool)
 
 
 @dataclass
@@ -101,6 +168,12 @@ class DaskExecutor:
         finally:
             for future in futures:
                 future.cancel()
+
+    def imap_pool(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                  on_start: Callable[[int], None] | None = None
+                  ) -> Iterator[tuple[int, Any]]:
+        """Cluster tasks, as :meth:`imap` (the workers' lifetime is the cluster's)."""
+        return self.imap(fn, tasks, shared)
 
     def describe(self) -> dict[str, Any]:
         """For config files: which scheduler, how many workers."""

@@ -198,3 +198,59 @@ def test_relative_pose_convention_of_registration(sim):
     assert np.allclose(gt, invert_pose(sim.poses[i]) @ sim.poses[j])
     r = register_points(sim[i], sim[j], np.eye(4))
     assert translation_error_m(r.pose[None], gt[None])[0] < 0.05
+
+
+def _pairs_with_repeats():
+    """Loops reusing scans (scan 0 matched by three queries, scan 5 as query and match)."""
+    q = np.array([5, 7, 9, 11, 10, 8])
+    m = np.array([0, 0, 0, 5, 5, -1])
+    return q, m
+
+
+def test_parallel_refinement_equals_fresh_per_pair_registration(sim):
+    """Prepared once and shared, in one process or two: every pose is the pose of a fresh
+    registration of that pair alone (single-threaded small_gicp is deterministic)."""
+    from lidar_iris_eval.executor import ProcessExecutor, SerialExecutor
+
+    q, m = _pairs_with_repeats()
+    gt = relative_ground_truth(sim.poses, q, np.maximum(m, 0))
+    start = np.stack([yaw_pose(float(yaw_deg_of(g))) for g in gt])
+    fresh = [register_points(sim[qi], sim[mi], s) if mi >= 0 else None
+             for qi, mi, s in zip(q, m, start, strict=True)]
+    ticks = []
+    serial = refine_pairs(sim, q, m, start, executor=SerialExecutor(), progress=ticks.append)
+    parallel = refine_pairs(sim, q, m, start, executor=ProcessExecutor(workers=2))
+    assert sum(ticks) == len(q)
+    for r in (serial, parallel):
+        assert np.isnan(r.pose[5]).all() and not r.registered[5]
+        for k, f in enumerate(fresh):
+            if f is not None:
+                assert np.array_equal(r.pose[k], f.pose), k
+                assert r.inlier_ratio[k] == f.inlier_ratio and r.rmse_m[k] == f.rmse_m
+    assert np.array_equal(serial.pose, parallel.pose, equal_nan=True)
+
+
+def test_two_passes_prepare_each_scan_once(sim):
+    """Refinement and ground-truth passes in one call: each of the 6 distinct scans once."""
+    from lidar_iris_eval.matching.registration import ScanCache, refine_many
+
+    q, m = _pairs_with_repeats()
+    settings = RegistrationSettings()
+    cache = ScanCache(sim, settings)
+    gt = relative_ground_truth(sim.poses, q, np.maximum(m, 0))
+    one, two = refine_many(sim, [(q, m, None), (q, m, gt)], settings, cache=cache)
+    assert cache.n_prepared == len(set(q[m >= 0]) | set(m[m >= 0]))
+    assert one.registered.sum() == two.registered.sum() == 5
+
+
+def test_pool_stops_at_once_when_the_consumer_stops():
+    """A pool left early (an error, Ctrl-C) kills its running tasks instead of waiting."""
+    import time
+
+    from lidar_iris_eval.executor import ProcessExecutor
+
+    results = ProcessExecutor(workers=2).imap_pool(time.sleep, [(0.0,), (30.0,), (30.0,)])
+    next(results)
+    started = time.perf_counter()
+    results.close()
+    assert time.perf_counter() - started < 5.0

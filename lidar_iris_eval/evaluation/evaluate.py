@@ -300,7 +300,7 @@ def evaluate(
                                settings, progress, times, executor)
         if result.protocol1 is not None:
             result = _with_loop_poses(result, sequence, positions, forward, settings,
-                                      loop_settings, progress)
+                                      loop_settings, progress, executor)
         if ranking and result.protocol1 is not None:
             result.rows[0].update(ranking_row(desc, db, positions, settings, times))
         results.append(result)
@@ -309,12 +309,13 @@ def evaluate(
 
 
 def _with_loop_poses(result: DescriptorResult, sequence, positions, forward, settings,
-                     loop_settings: lp.LoopPoseSettings, progress) -> DescriptorResult:
+                     loop_settings: lp.LoopPoseSettings, progress,
+                     executor=None) -> DescriptorResult:
     """Registration recall, and with ``--refine``/``--gt-pose refined`` the registrations
     (issue 23): protocol 1 rescored under the acceptance rule, its row extended."""
     p1, loops = lp.apply(result.protocol1, sequence, positions, forward, loop_settings,
                          desc_name=result.descriptor.name, progress=progress,
-                         run_settings=settings)
+                         run_settings=settings, executor=executor)
     rows = _rows(result.descriptor, result.db, p1, result.protocol2, settings) \
         if p1 is not result.protocol1 else [dict(r) for r in result.rows]
     rows[0].update(lp.loop_pose_metrics(p1, loops, loop_settings,

@@ -41,7 +41,7 @@ from lidar_iris_eval.matching.registration import (
     RegistrationSettings,
     ScanCache,
     has_points,
-    refine_pairs,
+    refine_many,
 )
 
 GT_POSES = ("dataset", "refined")
@@ -205,29 +205,34 @@ class LoopPoses:
 
 def refine_loops(p1, sequence, settings: LoopPoseSettings,
                  progress: Callable[[int], object] | None = None,
-                 cache: ScanCache | None = None) -> LoopPoses:
-    """Register ``p1``'s matches and/or its true matches' ground truth (see module doc)."""
+                 cache: ScanCache | None = None, executor=None) -> LoopPoses:
+    """Register ``p1``'s matches and/or its true matches' ground truth (see module doc).
+
+    Both registrations run as one :func:`~lidar_iris_eval.matching.registration.refine_many`
+    call (a scan is prepared once for both), in parallel on ``executor``'s processes.
+    """
     if not has_points(sequence):
         raise LirisError(option("refine", settings.refine or settings.gt_pose), NO_POINTS)
     cache = cache if cache is not None else ScanCache(sequence, settings.registration)
     m = p1.matches
     gt = relative_ground_truth(sequence.poses, m.query, m.match)
+    passes = []
+    if settings.refine is not None:
+        passes.append((m.query, m.match, p1.pose))
+    if settings.gt_pose == "refined":
+        true = np.asarray(p1.is_true, dtype=bool)
+        passes.append((m.query, np.where(true, m.match, -1), gt))
+    results = refine_many(sequence, passes, settings.registration, progress, cache, executor)
     refined = rre = rte = accepted = None
     if settings.refine is not None:
-        refined = refine_pairs(sequence, m.query, m.match, p1.pose, settings.registration,
-                               progress, cache)
+        refined = results.pop(0)
         rre, rte = pose_errors(refined.pose, gt)
         accepted = np.ones(len(m.query), dtype=bool)
         if settings.min_inlier_ratio is not None:
             accepted &= np.nan_to_num(refined.inlier_ratio, nan=-1.0) >= settings.min_inlier_ratio
         if settings.max_rmse_m is not None:
             accepted &= np.nan_to_num(refined.rmse_m, nan=np.inf) <= settings.max_rmse_m
-    gt_refined = None
-    if settings.gt_pose == "refined":
-        true = np.asarray(p1.is_true, dtype=bool)
-        match = np.where(true, m.match, -1)
-        gt_refined = refine_pairs(sequence, m.query, match, gt, settings.registration,
-                                  progress, cache)
+    gt_refined = results.pop(0) if settings.gt_pose == "refined" else None
     return LoopPoses(settings, refined, rre, rte, accepted, gt, gt_refined,
                      cache.n_prepared, np.asarray(m.distance).copy(), cache.prepare_s)
 
@@ -255,7 +260,7 @@ def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
 
 def apply(p1, sequence, positions: np.ndarray, forward: np.ndarray | None,
           settings: LoopPoseSettings, desc_name: str = "", progress: bool = False,
-          run_settings=None):
+          run_settings=None, executor=None):
     """``(protocol 1 result, LoopPoses or None)`` after the registrations ``settings`` ask for.
 
     Without registration, or on a sequence without point clouds (n/a), ``p1``
@@ -271,7 +276,7 @@ def apply(p1, sequence, positions: np.ndarray, forward: np.ndarray | None,
     total = rows * ((settings.refine is not None) + (settings.gt_pose == "refined"))
     with tqdm(total=total, desc=f"{desc_name} registration", unit="loop", file=sys.stderr,
               disable=not progress, leave=False) as bar:
-        loops = refine_loops(p1, sequence, settings, bar.update)
+        loops = refine_loops(p1, sequence, settings, bar.update, executor=executor)
     return rescore_with_acceptance(p1, loops, positions, forward, sequence.poses,
                                    run_settings), loops
 

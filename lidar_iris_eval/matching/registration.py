@@ -220,7 +220,8 @@ class RefinedPoses:
     """Registrations of many pairs, one row each (NaN rows where not registered).
 
     ``pose (Q, 4, 4)``, ``inlier_ratio``, ``rmse_m``, ``seconds`` (alignment
-    wall time), ``converged``; ``prepare_s`` is the total downsampling time.
+    wall time), ``converged``; ``prepare_s`` is the total downsampling time of the
+    call that registered them (:func:`refine_many`: shared by its passes).
     """
 
     pose: np.ndarray
@@ -266,36 +267,133 @@ def has_points(sequence) -> bool:
     return not getattr(sequence, "has_objects", False)
 
 
-def refine_pairs(sequence, query: np.ndarray, match: np.ndarray, initial: np.ndarray | None,
-                 settings: RegistrationSettings | None = None,
-                 progress: Callable[[int], object] | None = None,
-                 cache: ScanCache | None = None) -> RefinedPoses:
-    """Register scan ``match[k]`` to scan ``query[k]`` for every row with ``match >= 0``.
+#: most loops in one parallel task (a chunk shares its prepared scans)
+CHUNK_LOOPS = 24
 
-    ``initial`` ``(Q, 4, 4)`` holds the starting poses (any NaN handled by
-    :func:`initial_guess`), or None for the identity everywhere.
+
+def _register_chunk(sequence, settings: RegistrationSettings, query: np.ndarray,
+                    match: np.ndarray, initial: np.ndarray, cache: ScanCache | None = None):
+    """Register ``match[k]`` to ``query[k]`` from ``initial[k]`` for every ``k`` (one task).
+
+    Each scan is prepared once per process (:class:`ScanCache`, kept across the
+    tasks a pool worker runs). Returns the per-row arrays and the preparation
+    time and count spent here.
+    """
+    if cache is None:
+        cache = _process_cache(sequence, settings)
+    before_s, before_n = cache.prepare_s, cache.n_prepared
+    n = len(query)
+    pose = np.full((n, 4, 4), np.nan)
+    ratio, rmse, secs = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    conv = np.zeros(n, dtype=bool)
+    for k in range(n):
+        r = register(cache[query[k]], cache[match[k]], initial[k], settings)
+        pose[k], ratio[k], rmse[k], secs[k], conv[k] = (r.pose, r.inlier_ratio, r.rmse_m,
+                                                        r.seconds, r.converged)
+    return (pose, ratio, rmse, secs, conv, cache.prepare_s - before_s,
+            cache.n_prepared - before_n)
+
+
+#: the scan cache of a pool worker (one sequence and settings per pool)
+_PROCESS_CACHE: dict[tuple[int, RegistrationSettings], ScanCache] = {}
+
+
+def _process_cache(sequence, settings: RegistrationSettings) -> ScanCache:
+    key = (id(sequence), settings)
+    if key not in _PROCESS_CACHE:
+        _PROCESS_CACHE.clear()
+        _PROCESS_CACHE[key] = ScanCache(sequence, settings)
+    return _PROCESS_CACHE[key]
+
+
+def _chunks(order: np.ndarray, n_workers: int) -> list[np.ndarray]:
+    """Cut the rows (sorted by query scan) into tasks of at most :data:`CHUNK_LOOPS`."""
+    size = int(np.clip(np.ceil(len(order) / max(1, 4 * n_workers)), 1, CHUNK_LOOPS))
+    return [order[i:i + size] for i in range(0, len(order), size)]
+
+
+def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+                settings: RegistrationSettings | None = None,
+                progress: Callable[[int], object] | None = None,
+                cache: ScanCache | None = None, executor=None) -> list[RefinedPoses]:
+    """:func:`refine_pairs` for several passes ``(query, match, initial)`` at once.
+
+    The rows of every pass with ``match >= 0`` are sorted by query scan and
+    cut into tasks; with an ``executor`` of several processes
+    (:meth:`~lidar_iris_eval.executor.SerialExecutor.imap_pool`) the tasks run
+    in parallel, each worker preparing a scan once and reusing it for every
+    loop it registers with that scan. Every registration is a pure function
+    of the two scans and its initial pose, so the poses are the serial ones
+    (single-threaded ``small_gicp``). ``progress`` ticks once per row and pass.
     """
     settings = (settings or RegistrationSettings()).check()
     if not has_points(sequence):
         raise LirisError(option("refine", settings.method),
                          "this sequence has objects, not point clouds; nothing to register")
     _library()
-    query = np.asarray(query, dtype=np.int64)
-    match = np.asarray(match, dtype=np.int64)
-    n = len(query)
-    pose = np.full((n, 4, 4), np.nan)
-    ratio = np.full(n, np.nan)
-    rmse = np.full(n, np.nan)
-    secs = np.full(n, np.nan)
-    conv = np.zeros(n, dtype=bool)
+    queries, matches, starts, owner = [], [], [], []
+    sizes = []
+    for p, (query, match, initial) in enumerate(passes):
+        query = np.asarray(query, dtype=np.int64)
+        match = np.asarray(match, dtype=np.int64)
+        sizes.append(len(query))
+        rows = np.flatnonzero(match >= 0)
+        queries.append(query[rows])
+        matches.append(match[rows])
+        starts.append(np.stack([initial_guess(None if initial is None else initial[k])
+                                for k in rows]) if len(rows) else np.empty((0, 4, 4)))
+        owner.append(np.stack([np.full(len(rows), p), rows], axis=1))
+    query = np.concatenate(queries) if queries else np.empty(0, np.int64)
+    match = np.concatenate(matches) if matches else np.empty(0, np.int64)
+    start = np.concatenate(starts) if starts else np.empty((0, 4, 4))
+    owner = np.concatenate(owner) if owner else np.empty((0, 2), np.int64)
+    out = [{"pose": np.full((n, 4, 4), np.nan), "ratio": np.full(n, np.nan),
+            "rmse": np.full(n, np.nan), "secs": np.full(n, np.nan),
+            "conv": np.zeros(n, dtype=bool)} for n in sizes]
+    if progress is not None:  # rows without a match count as done
+        skipped = sum(sizes) - len(query)
+        if skipped:
+            progress(skipped)
+    workers = 1 if executor is None else int(getattr(executor, "workers", 1))
+    parallel = executor is not None and not executor.serial and workers > 1
+    order = np.lexsort((match, query))
+    chunks = _chunks(order, workers if parallel else 1)
+    prepare_s, n_prepared = 0.0, 0
     cache = cache if cache is not None else ScanCache(sequence, settings)
-    before = cache.prepare_s
-    for k in range(n):
-        if match[k] >= 0:
-            start = initial_guess(None if initial is None else initial[k])
-            r = register(cache[query[k]], cache[match[k]], start, settings)
-            pose[k], ratio[k], rmse[k], secs[k], conv[k] = (r.pose, r.inlier_ratio, r.rmse_m,
-                                                            r.seconds, r.converged)
+    tasks = [(query[c], match[c], start[c]) for c in chunks]
+    if parallel:
+        from lidar_iris_eval.lifetime import die_with_parent
+
+        results = executor.imap_pool(_register_chunk, tasks, shared=(sequence, settings),
+                                     on_start=die_with_parent)
+    else:
+        results = ((i, _register_chunk(sequence, settings, *task, cache))
+                   for i, task in enumerate(tasks))
+    for index, (pose, ratio, rmse, secs, conv, chunk_s, chunk_n) in results:
+        for j, (p, row) in enumerate(owner[chunks[index]]):
+            o = out[p]
+            o["pose"][row], o["ratio"][row], o["rmse"][row] = pose[j], ratio[j], rmse[j]
+            o["secs"][row], o["conv"][row] = secs[j], conv[j]
+        prepare_s += chunk_s
+        n_prepared += chunk_n
         if progress is not None:
-            progress(1)
-    return RefinedPoses(pose, ratio, rmse, secs, conv, cache.prepare_s - before, settings)
+            progress(len(chunks[index]))
+    if parallel:  # the workers prepared the scans: count them in the caller's cache
+        cache.prepare_s += prepare_s
+        cache.n_prepared += n_prepared
+    return [RefinedPoses(o["pose"], o["ratio"], o["rmse"], o["secs"], o["conv"], prepare_s,
+                         settings) for o in out]
+
+
+def refine_pairs(sequence, query: np.ndarray, match: np.ndarray, initial: np.ndarray | None,
+                 settings: RegistrationSettings | None = None,
+                 progress: Callable[[int], object] | None = None,
+                 cache: ScanCache | None = None, executor=None) -> RefinedPoses:
+    """Register scan ``match[k]`` to scan ``query[k]`` for every row with ``match >= 0``.
+
+    ``initial`` ``(Q, 4, 4)`` holds the starting poses (any NaN handled by
+    :func:`initial_guess`), or None for the identity everywhere. ``executor``:
+    see :func:`refine_many`.
+    """
+    return refine_many(sequence, [(query, match, initial)], settings, progress, cache,
+                       executor)[0]
