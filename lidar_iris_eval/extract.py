@@ -50,6 +50,7 @@ from lidar_iris_eval.config import params_dict
 from lidar_iris_eval.descriptors.base import Descriptor, reads_local_maps
 from lidar_iris_eval.descriptors.features import RaggedFeatures
 from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.executor import stop_pool
 
 DEFAULT_CHUNK_SIZE = 50
 
@@ -458,9 +459,8 @@ def _compute_chunks(seq, descriptors, todo, workers, bar, executor=None) -> Iter
                 outputs = _raise_errors(future.result())
                 bar.update(b - a)
                 yield (a, b), outputs
-        except BaseException:
-            for future in futures:
-                future.cancel()
+        except BaseException:  # Ctrl-C or an error: do not wait for the running chunks
+            stop_pool(pool)
             raise
 
 

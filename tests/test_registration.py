@@ -254,3 +254,21 @@ def test_pool_stops_at_once_when_the_consumer_stops():
     started = time.perf_counter()
     results.close()
     assert time.perf_counter() - started < 5.0
+
+
+def test_ctrl_c_during_parallel_registration_is_one_line_and_stops_the_workers(tmp_path):
+    """SIGINT while two workers register: exit 130, one line, no worker left behind."""
+    import subprocess
+
+    from test_faults_mech import assert_interrupted, interrupt
+
+    from lidar_iris_eval.simulate import simulate_sequence
+
+    simulate_sequence(tmp_path / "seq", preset="tiny-mixed", azimuth_steps=512)
+    code, err = interrupt(["eval", tmp_path / "seq", "-d", "scan-context", "--protocol", "1",
+                           "--refine", "gicp", "--gt-pose", "refined", "--workers", "2",
+                           "--out", "O"], tmp_path, "registration")
+    assert_interrupted(code, err)
+    assert not (tmp_path / "O").exists()
+    left = subprocess.run(["pgrep", "-f", str(tmp_path / "seq")], capture_output=True, text=True)
+    assert left.stdout.split() == [], left.stdout
