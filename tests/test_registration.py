@@ -231,16 +231,18 @@ def test_parallel_refinement_equals_fresh_per_pair_registration(sim):
 
 
 def test_two_passes_prepare_each_scan_once(sim):
-    """Refinement and ground-truth passes in one call: each of the 6 distinct scans once."""
+    """Refinement and ground-truth passes in one call: each of the 6 distinct scans once,
+    even with room for 3 prepared scans (an LRU of 3 would prepare scan 5 twice)."""
     from lidar_iris_eval.matching.registration import ScanCache, refine_many
 
     q, m = _pairs_with_repeats()
     settings = RegistrationSettings()
-    cache = ScanCache(sim, settings)
+    cache = ScanCache(sim, settings, size=3)
     gt = relative_ground_truth(sim.poses, q, np.maximum(m, 0))
     one, two = refine_many(sim, [(q, m, None), (q, m, gt)], settings, cache=cache)
     assert cache.n_prepared == len(set(q[m >= 0]) | set(m[m >= 0]))
     assert one.registered.sum() == two.registered.sum() == 5
+    assert len(cache._items) == 0  # every scan let go after its last loop
 
 
 def test_pool_stops_at_once_when_the_consumer_stops():
