@@ -274,3 +274,39 @@ def test_ctrl_c_during_parallel_registration_is_one_line_and_stops_the_workers(t
     assert not (tmp_path / "O").exists()
     left = subprocess.run(["pgrep", "-f", str(tmp_path / "seq")], capture_output=True, text=True)
     assert left.stdout.split() == [], left.stdout
+
+
+def test_methods_share_registrations_and_prepared_scans(sim):
+    """Two methods' loops in one call: equal (pair, start) rows registered once, each scan
+    prepared once for both, results those of each method alone."""
+    from types import SimpleNamespace
+
+    from lidar_iris_eval.evaluation.loop_poses import LoopPoseSettings, refine_loops_many
+    from lidar_iris_eval.matching.registration import ScanCache
+
+    q, m = _pairs_with_repeats()
+    matches = SimpleNamespace(query=q, match=m, distance=np.zeros(len(q)))
+    no_pose = SimpleNamespace(matches=matches, pose=None, is_true=m >= 0)  # M2DP-like
+    other = SimpleNamespace(matches=matches, pose=None, is_true=m >= 0)  # ESF-like
+    settings = LoopPoseSettings(refine="gicp")
+    cache = ScanCache(sim, settings.registration)
+    calls = []
+    import lidar_iris_eval.matching.registration as reg
+
+    real = reg.register
+
+    def counting(*args):
+        calls.append(1)
+        return real(*args)
+
+    reg.register = counting
+    try:
+        both = refine_loops_many([no_pose, other, None], sim, settings, cache=cache)
+        n_both = len(calls)
+        alone = refine_loops_many([no_pose], sim, settings)[0]
+    finally:
+        reg.register = real
+    assert both[2] is None
+    assert n_both == 5 and cache.n_prepared == 6
+    for loops in both[:2]:
+        assert np.array_equal(loops.refined.pose, alone.refined.pose, equal_nan=True)

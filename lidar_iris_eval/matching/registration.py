@@ -356,7 +356,10 @@ def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray 
     in parallel, each worker preparing a scan once and reusing it for every
     loop it registers with that scan. Every registration is a pure function
     of the two scans and its initial pose, so the poses are the serial ones
-    (single-threaded ``small_gicp``). ``progress`` ticks once per row and pass.
+    (single-threaded ``small_gicp``), and a row repeating another's pair and
+    start (in another pass: two methods' passes in one call) takes its result
+    (and its ``seconds``) instead of registering again. ``progress`` ticks
+    once per row and pass.
     """
     settings = (settings or RegistrationSettings()).check()
     if not has_points(sequence):
@@ -386,9 +389,19 @@ def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray 
         skipped = sum(sizes) - len(query)
         if skipped:
             progress(skipped)
+    # the same pair from the same start (two methods without a pose: both the identity) is
+    # registered once: the result is a function of (query, match, start) alone
+    first: dict[tuple, int] = {}
+    unique = np.array([first.setdefault((int(a), int(b), t.tobytes()), r)
+                       for r, (a, b, t) in enumerate(zip(query, match, start, strict=True))],
+                      dtype=np.int64)
+    rows_of: dict[int, list[int]] = {}
+    for r, u in enumerate(unique):
+        rows_of.setdefault(int(u), []).append(r)
+    todo = np.array(sorted(rows_of), dtype=np.int64)
     workers = 1 if executor is None else int(getattr(executor, "workers", 1))
     parallel = executor is not None and not executor.serial and workers > 1
-    order = np.lexsort((match, query))
+    order = todo[np.lexsort((match[todo], query[todo]))]
     chunks = _chunks(order, workers if parallel else 1)
     prepare_s, n_prepared = 0.0, 0
     cache = cache if cache is not None else ScanCache(sequence, settings)
@@ -403,14 +416,17 @@ def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray 
         results = ((i, _register_chunk(sequence, settings, *task, cache))
                    for i, task in enumerate(tasks))
     for index, (pose, ratio, rmse, secs, conv, chunk_s, chunk_n) in results:
-        for j, (p, row) in enumerate(owner[chunks[index]]):
-            o = out[p]
-            o["pose"][row], o["ratio"][row], o["rmse"][row] = pose[j], ratio[j], rmse[j]
-            o["secs"][row], o["conv"][row] = secs[j], conv[j]
+        ticks = 0
+        for j, u in enumerate(chunks[index]):
+            for p, row in owner[rows_of[int(u)]]:
+                o = out[p]
+                o["pose"][row], o["ratio"][row], o["rmse"][row] = pose[j], ratio[j], rmse[j]
+                o["secs"][row], o["conv"][row] = secs[j], conv[j]
+                ticks += 1
         prepare_s += chunk_s
         n_prepared += chunk_n
         if progress is not None:
-            progress(len(chunks[index]))
+            progress(ticks)
     if parallel:  # the workers prepared the scans: count them in the caller's cache
         cache.prepare_s += prepare_s
         cache.n_prepared += n_prepared
