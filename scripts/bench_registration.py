@@ -18,7 +18,10 @@ Three ways register the same loops, one after the other in this process:
 * ``serial``: this version with ``--workers 1``;
 * ``parallel``: this version with ``--workers`` processes (default 2).
 
-Recorded: wall and CPU (this process and its children) of each, ms per loop (the
+``--repeat R`` runs the three R times, interleaved (before, serial, parallel, before, ...),
+and the ratio uses the median wall of each, so a change of load during the run hits
+all three alike. Recorded: wall and CPU (this process and its children) of each (first
+round), ms per loop (the
 alignment's own time, mean), ms per prepared scan and the number of scans prepared
 (against the number of distinct scans), the ratios ``before / parallel``, and whether
 the refined poses are bitwise equal to ``before``'s. On a shared machine every time is
@@ -124,6 +127,8 @@ def main() -> None:
     ap.add_argument("--gt-pose", choices=("dataset", "refined"), default="dataset")
     ap.add_argument("--before-ref", default="main", help="git ref of the 'before' code")
     ap.add_argument("--skip-before", action="store_true")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="rounds of the ways, interleaved (median wall per way)")
     ap.add_argument("--cache-dir", default=None)
     ap.add_argument("--json-out", default=None)
     args = ap.parse_args()
@@ -147,11 +152,19 @@ def main() -> None:
             ("parallel", run_now, (seq, passes, args.workers))]
     if not args.skip_before:
         ways.insert(0, ("before", run_before, (load_before(args.before_ref), seq, passes)))
-    for name, fn, fn_args in ways:
-        result, wall, cpu = timed(fn, *fn_args)
-        results[name] = result[0]
-        report["ways"].append(summary(name, result, wall, cpu, n_loops, len(distinct)))
-        print(json.dumps(report["ways"][-1]), file=sys.stderr)
+    walls: dict[str, list[float]] = {name: [] for name, _, _ in ways}
+    for round_ in range(args.repeat):  # interleaved, so a change of load hits every way alike
+        for name, fn, fn_args in ways:
+            result, wall, cpu = timed(fn, *fn_args)
+            walls[name].append(wall)
+            if round_ == 0:
+                results[name] = result[0]
+                report["ways"].append(summary(name, result, wall, cpu, n_loops, len(distinct)))
+            print(json.dumps({"round": round_, "way": name, "wall_s": round(wall, 2),
+                              "cpu_s": round(cpu, 2)}), file=sys.stderr)
+    for w in report["ways"]:
+        w["wall_s_rounds"] = [round(x, 2) for x in walls[w["way"]]]
+        w["wall_s_median"] = round(float(np.median(walls[w["way"]])), 2)
     reference = results.get("before", results["serial"])
     report["identical_poses"] = {
         name: all(np.array_equal(a.pose, b.pose, equal_nan=True)
@@ -160,7 +173,8 @@ def main() -> None:
         for name, refined in results.items()}
     by = {w["way"]: w for w in report["ways"]}
     base = by.get("before", by["serial"])
-    report["ratio_wall_base_over_parallel"] = round(base["wall_s"] / by["parallel"]["wall_s"], 2)
+    report["ratio_wall_base_over_parallel"] = round(base["wall_s_median"]
+                                                    / by["parallel"]["wall_s_median"], 2)
     report["ratio_scans_prepared_base_over_parallel"] = round(
         base["scans_prepared"] / max(1, by["parallel"]["scans_prepared"]), 2)
     report["load_after"] = os.getloadavg()
