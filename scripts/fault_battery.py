@@ -558,6 +558,37 @@ def cases() -> list[Case]:
     add(Case("bench protocol and its skip", ["bench", "--protocol", "1", "--skip-protocol1"],
              None, "error", "--skip-protocol1"))
 
+    # issue 40, minor cases: listings, counts, times, foreign warnings, a run without config.yaml
+    def link_loop(cwd: Path) -> None:
+        copy_seq()(cwd)
+        names = sorted((cwd / "S/velodyne").iterdir())
+        loop = cwd / "S/velodyne" / f"{int(names[-1].stem) + 1:06d}.bin"
+        loop.symlink_to(loop)
+
+    add(Case("scan is a symlink loop", ["gt", "S"], link_loop, "error", "symbolic-link loop"))
+
+    def missing_scan(cwd: Path) -> None:
+        copy_seq()(cwd)
+        (cwd / "S/velodyne/000007.bin").unlink()
+
+    add(Case("count error names the missing scan", ["gt", "S"], missing_scan, "error",
+             "no scan numbered 000007"))
+
+    def nan_time(cwd: Path) -> None:
+        copy_seq()(cwd)
+        lines = (cwd / "S/times.txt").read_text().splitlines()
+        lines[4] = "nan"
+        (cwd / "S/times.txt").write_text("\n".join(lines) + "\n")
+
+    add(Case("NaN scan time", ["gt", "S"], nan_time, "error", "times.txt: time 5 is nan"))
+
+    def without_config(cwd: Path) -> None:
+        copy_run("B")(cwd)
+        (cwd / "B/config.yaml").unlink()
+
+    add(Case("show of a run without config.yaml warns", ["show", "B"], without_config, "ok",
+             check=stderr_has("config.yaml: missing")))
+
     # help for a new user
     def lists_all(res: Result) -> str | None:
         names = ("LiDAR Iris", "Scan Context", "M2DP", "ESF", "GOSMatch", "ESM")

@@ -118,3 +118,26 @@ def test_real_process_prints_one_line_and_exit_2(tmp_path):
     assert result.returncode == 2
     expected = f"liris: error: {tmp_path / 'p.txt'}: pose file not found"
     assert result.stderr.strip().splitlines() == [expected]
+
+
+def test_gt_json_keys_do_not_depend_on_the_options(tmp_path, capsys):
+    """Scripts read ``gt --json``; its keys changed with --convention, and the E preset read
+    "custom" when the convention had set E (scancontext-eval: 50 frames back)."""
+    n = 120
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    angle = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    poses[:, 0, 3], poses[:, 2, 3] = 30 * np.cos(angle), 30 * np.sin(angle)
+    path = tmp_path / "poses.txt"
+    np.savetxt(path, poses[:, :3, :4].reshape(n, 12))
+    outputs = []
+    for extra in ([], ["--convention", "scancontext-eval"], ["--exclude", "reference"]):
+        code, out, err = run_cli(["gt", "--poses", path, "--json", *extra], capsys)
+        assert code == 0, err
+        outputs.append(json.loads(out))
+    assert {frozenset(o) for o in outputs} == {frozenset(outputs[0])}
+    plain, scancontext, reference = outputs
+    assert (plain["convention"], plain["queries"], plain["last_frame_query"]) == ("liris", n - 30,
+                                                                                  True)
+    assert scancontext["exclude_preset"] == "convention scancontext-eval"
+    assert scancontext["last_frame_query"] is False
+    assert reference["exclude_preset"] == "reference" and reference["queries"] == 0

@@ -149,6 +149,18 @@ def test_inf_in_oxford_ins_names_the_line(tmp_path):
     one_error(liris(["gt", run], tmp_path), "ins.csv:4", "NaN or inf")
 
 
+@pytest.mark.parametrize("writer", ["write_oxford_bin", "write_oxford_png"])
+def test_nan_in_oxford_extrinsics_names_the_file(tmp_path, writer):
+    """The raw (PNG) and the .bin layout share the INS and extrinsics readers."""
+    import dataset_writers
+
+    run = getattr(dataset_writers, writer)(tmp_path, dataset_writers.loop_case(2))
+    run = run[0] if isinstance(run, tuple) else run
+    (run / "extrinsics").mkdir(exist_ok=True)
+    (run / "extrinsics" / "ins.txt").write_text("-1.7132 0.1181 nan -0.0125 0.0400 0.0050\n")
+    one_error(liris(["gt", run], tmp_path), "ins.txt", "NaN or inf")
+
+
 def trajectory(path: Path, bad: str | None) -> Path:
     lines = [f"1 0 0 {2.0 * i} 0 1 0 0 0 0 1 0" for i in range(8)]
     if bad is not None:
@@ -276,3 +288,40 @@ def test_seed_at_the_32_bit_limit_is_accepted():
 def test_bench_protocol_and_its_skip_are_contradictory(tmp_path):
     one_error(liris(["bench", "--protocol", "1", "--skip-protocol1"], tmp_path),
               "--skip-protocol1", "contradictory")
+
+
+def test_foreign_warnings_are_one_line_without_source_paths(capsys):
+    """NumPy's or matplotlib's warnings printed ``/…/metrics.py:218: …`` and the source line."""
+    from lidar_iris_eval import cli as cli_module
+    from lidar_iris_eval.errors import LirisWarning
+
+    cli_module._show_warning(RuntimeWarning("invalid value\nencountered in divide"),
+                             RuntimeWarning, "/site/numpy/core/_methods.py", 218)
+    cli_module._show_warning(LirisWarning("no positives"), LirisWarning, "/x/metrics.py", 218)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == ["liris: warning: RuntimeWarning: invalid value encountered in divide",
+                     "liris: warning: no positives"]
+
+
+def test_show_of_a_run_without_config_yaml_warns(run_dir, tmp_path):
+    """It used to show liris's default conventions as if they were the run's, without a word."""
+    import shutil
+
+    run = Path(shutil.copytree(run_dir, tmp_path / "C"))
+    (run / "config.yaml").unlink()
+    res = liris(["show", run], tmp_path)
+    assert res.returncode == 0, res.stderr
+    warnings_ = [line for line in res.stderr.splitlines() if line.startswith("liris: warning:")]
+    assert len(warnings_) == 1 and "config.yaml: missing" in warnings_[0], res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_plot_of_an_iris_run_does_not_warn_about_parameters_nobody_set(seq, tmp_path):
+    """config.yaml records every parameter; plot rebuilt Iris from it and warned
+    "lidar-iris.shift_window: ignored" on every default run."""
+    res = liris(["eval", seq, "-q", "-d", "lidar-iris", "--protocol", "1", "--out", tmp_path / "R"],
+                tmp_path)
+    assert res.returncode == 0, res.stderr
+    res = liris(["plot", tmp_path / "R", "--out", tmp_path / "figs"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "shift_window" not in res.stderr and "Traceback" not in res.stderr, res.stderr

@@ -44,8 +44,10 @@ def test_report_is_offline_and_embeds_affinity_as_images(run_dir, capsys):
     scripts = re.findall(r"<script[^>]*src=['\"]([^'\"]+)", page)
     assert scripts == ["plotly.min.js"]  # nothing from a CDN
     assert "cdn.plot.ly" not in page
-    images = re.findall(r"src='data:image/png;base64,", page)
+    images = re.findall(r"alt='affinity [^']*' src='data:image/png;base64,", page)
     assert len(images) == 2  # one affinity image per descriptor
+    atlas = re.findall(r"alt='failure atlas [^']*' src='data:image/png;base64,", page)
+    assert len(atlas) == 2  # and one failure atlas figure per descriptor
     # the affinity matrices are images only: no plotly figure (JSON) in their section
     section = page.split("<div id='affinity'>")[1].split("</div>")[0]
     assert "<script" not in section and section.count("<img") == 2
@@ -114,6 +116,10 @@ def test_report_loads_in_headless_chromium_without_console_errors(run_dir, capsy
             "return Array.from(document.querySelectorAll('#affinity img'))"
             ".map(i => i.complete && i.naturalWidth)")
         assert images == [24, 24]  # decoded PNGs, one pixel per frame
+        atlas = browser.execute_script(  # the failure atlas section: one decoded PNG a method
+            "return Array.from(document.querySelectorAll('#failure-atlas img'))"
+            ".map(i => i.complete && i.naturalWidth > 100)")
+        assert atlas == [True, True]
         errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
         assert errors == []
         shot = tmp_path / "report.png"

@@ -51,15 +51,19 @@ _STARTUP_SIGINT = (signal.signal(signal.SIGINT, _interrupted_during_startup)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
-    """Print liris warnings as one plain line instead of Python's source dump."""
+    """Print every warning as one plain line instead of Python's source dump.
+
+    A liris warning is its message; another library's (NumPy's RuntimeWarning,
+    matplotlib's UserWarning) keeps its category name so it can be searched
+    for, but loses the ``/site-packages/...py:218:`` prefix and the source line,
+    which say nothing to a user and break ``grep warning`` on a log.
+    """
+    end_line()  # a bar keeps running; its next frame starts below the warning
+    text = " ".join(str(message).split())
     if issubclass(category, LirisWarning):
-        end_line()  # a bar keeps running; its next frame starts below the warning
-        print(f"liris: warning: {message}", file=sys.stderr)
+        print(f"liris: warning: {text}", file=sys.stderr)
     else:
-        _default_showwarning(message, category, filename, lineno, file, line)
-
-
-_default_showwarning = warnings.showwarning
+        print(f"liris: warning: {category.__name__}: {text}", file=sys.stderr)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

@@ -9,7 +9,7 @@ import click
 from lidar_iris_eval.atomic import figure_format
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.ownership import check_new_files
-from lidar_iris_eval.runs import FORMATS, load_run, render_table
+from lidar_iris_eval.runs import FORMATS, load_run, render_band_table, render_table
 from lidar_iris_eval.runs.compare import (
     convention_differences,
     difference_summary,
@@ -51,6 +51,10 @@ def command(runs, fmt, plot_out, overwrite):
     for run, label in zip(loaded, labels, strict=True):
         for line in result_warnings(run.rows):  # warnings that qualify a run's numbers
             click.echo(f"warning ({label}): {line}")
+    for run, label in zip(loaded, labels, strict=True):  # --convention-band runs
+        band = render_band_table(run.rows, fmt)
+        if band:
+            click.echo(f"{label}: {band}")
     differences = convention_differences(loaded)
     if differences:
         click.echo("conventions and settings that differ (the numbers are not like for like):")

@@ -17,6 +17,7 @@ from lidar_iris_eval.cli.loop_options import (
     loop_pose_options,
     read_odometry,
 )
+from lidar_iris_eval.cli.loops_eval import loops_options
 from lidar_iris_eval.cli.options import current_convention, ground_truth_options
 from lidar_iris_eval.cli.output import echo_json
 from lidar_iris_eval.cli.workflow import (
@@ -37,7 +38,7 @@ from lidar_iris_eval.evaluation.evaluate import (
 from lidar_iris_eval.executor import check_scheduler, open_executor
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
 from lidar_iris_eval.ownership import check_new_files
-from lidar_iris_eval.runs.table import render_table
+from lidar_iris_eval.runs.table import render_band_table, render_table
 from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, json_ready, write_run
 from lidar_iris_eval.sensors import resolve_sensor
 
@@ -72,12 +73,18 @@ register_flags({
               type=click.Path(path_type=Path, dir_okay=False),
               help="Score this file's loops (g2o, matches.csv, pair list; docs/loops.md) "
                    "instead of a descriptor; may be repeated.")
-@click.option("--loops-format", type=click.Choice(["g2o", "matches", "liris-txt", "pairs"]),
+@click.option("--loops-format",
+              type=click.Choice(["g2o", "matches", "liris-txt", "pairs", "tum", "mapclosures"]),
               default=None, help="Format of every --loops file [default: detected].")
 @click.option("--loops-index-base", type=click.IntRange(0, 1), default=0, show_default=True,
               help="Pair lists: 0- or 1-based frame indices.")
 @click.option("--loops-gap", type=click.IntRange(min=1), default=1, show_default=True,
               help="g2o: an edge is a loop when its vertex ids differ by more than this.")
+@loops_options
+@click.option("--convention-band", is_flag=True,
+              help="Also score protocol 1 under every convention preset that applies to the "
+                   "run (same pose frame), from the same matching pass: each metric's value "
+                   "under the run's convention and its min-max over the presets.")
 @click.option("--ranking", is_flag=True,
               help="Also rank each query's database (Recall@1..25, Recall@1 %, MRR) in a "
                    "within-sequence run: one more matching pass for protocol 1.")
@@ -109,11 +116,11 @@ register_flags({
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
 def command(sequence, protocols, query_path, database_path, align_path, pairs_text, loop_paths,
-            loops_format, loops_index_base, loops_gap, ranking,
+            loops_format, loops_index_base, loops_gap, convention_band, ranking,
             descriptor_text, preset, params, sensor, cache_dir, workers,
             quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
             export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
-            loop_settings, odometry, odometry_path, seeds):
+            loop_settings, odometry, odometry_path, seeds, loop_extra):
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
@@ -124,6 +131,11 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         raise LirisError(f"--workers {workers}", "must be at least 1")
     settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
     within = query_path is None and database_path is None and align_path is None
+    single = within and plan is None and len(sequence) == 1 and not loop_paths \
+        and pairs_text is None and seeds is None
+    if convention_band and not single:
+        raise LirisError("--convention-band", "applies to one within-sequence run of "
+                         "descriptors (no --query/--database, --plan, --loops, --pairs, --seeds)")
     if not within:
         _within_sequence_odometry(odometry)
         from lidar_iris_eval.cli.sessions_eval import evaluate_sessions_cli
@@ -144,6 +156,17 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
             run_sessions_plan(plan, descriptor_text, preset, params, sensor, cache_dir, workers,
                               quiet, settings, conv, out, overwrite, reader_options, scheduler)
             return
+    if loop_paths and (plan is not None or len(sequence) > 1):
+        raise LirisError("--loops", "scores one sequence (a SEQUENCE or --poses)")
+    if loop_paths and len(sequence) <= 1 and plan is None:  # poses alone are enough
+        from lidar_iris_eval.cli.loops_eval import evaluate_loops_cli, open_loops_sequence
+
+        evaluate_loops_cli(open_loops_sequence(sequence[0] if sequence else None,
+                                               reader_options),
+                           loop_paths, loops_format, loops_index_base, loops_gap, settings,
+                           protocols, descriptor_text, out, overwrite, as_json,
+                           {**config_extra(conv), "reader_options": reader_options}, loop_extra)
+        return
     if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
         if loop_settings.registers or odometry_path is not None or seeds is not None:
             raise LirisError("--refine/--gt-pose/--odometry/--seeds",
@@ -153,14 +176,6 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
                        as_json, reader_options, scheduler, odometry)
         return
     sequence = sequence[0]
-    if loop_paths:
-        from lidar_iris_eval.cli.loops_eval import evaluate_loops_cli
-
-        evaluate_loops_cli(open_input(sequence, reader_options), loop_paths, loops_format,
-                           loops_index_base, loops_gap, settings, protocols, descriptor_text,
-                           out, overwrite, as_json,
-                           {**config_extra(conv), "reader_options": reader_options})
-        return
     sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
     descriptors = build_descriptors(descriptor_text, preset, sensor, params, odometry) \
         if descriptor_text else []
@@ -203,7 +218,7 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
         def run_once(descs):
             return evaluate(seq, descs, protocols, settings, cache=cache, workers=workers,
                             progress=not quiet, executor=executor, loop_settings=loop_settings,
-                            ranking=ranking,
+                            ranking=ranking, convention_band=convention_band,
                             dbs=extract_all(seq, descs, cache, workers, quiet, executor))
 
         if seeds is None:
@@ -229,6 +244,9 @@ def command(sequence, protocols, query_path, database_path, align_path, pairs_te
                               "results": run.rows}))
         return
     click.echo(render_table(run.rows, table_format()))
+    band = render_band_table(run.rows, table_format())
+    if band:
+        click.echo(band, err=table_format() != "table")
     click.echo(  # after a Markdown/LaTeX/CSV table, to stderr: the table stays pasteable
         f"conventions: radius {settings.radius:g} m, exclude "
         + (f"E={settings.exclude} ({settings.exclude_name})" if settings.exclude_seconds is None

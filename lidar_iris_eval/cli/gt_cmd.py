@@ -9,14 +9,16 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from lidar_iris_eval.atomic import figure_format
 from lidar_iris_eval.cli.options import current_convention, ground_truth_options, parse_exclude
-from lidar_iris_eval.cli.output import echo_json, echo_table
+from lidar_iris_eval.cli.output import check_output_file, echo_json, echo_table, format_value
 from lidar_iris_eval.cli.sequence_options import sequence_options
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.errors import options as option_names
 from lidar_iris_eval.evaluation.conventions import convention_counts, with_overrides
 from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
+from lidar_iris_eval.ownership import check_new_files
 
 
 @click.command("gt")
@@ -36,14 +38,40 @@ from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
 @click.option("--cache-dir", type=click.Path(path_type=Path), default=None,
               help="Where the overlap matrix is cached [default: $LIRIS_CACHE_DIR or "
                    "./.liris-cache].")
+@click.option("--explain", "explain", type=int, nargs=2, default=None, metavar="I J",
+              help="Explain one pair: distances (3-D, planar; camera and LiDAR frame), frames "
+                   "and seconds apart, overlap when scans are there, and for every convention "
+                   "preset whether it is a positive and whether I is a revisit query, naming "
+                   "the deciding rule (docs/conventions.md).")
+@click.option("--diff", "diff", nargs=2, default=None, metavar="A B",
+              help="The positive pairs and revisit queries that convention A has and B lacks, "
+                   "and the reverse (counts; --diff-csv, --diff-plot). A or B may change a "
+                   "preset's rules: scancontext-eval:radius=4 (radius, exclude, distance, "
+                   "pose_frame).")
+@click.option("--diff-csv", type=click.Path(path_type=Path), default=None,
+              help="With --diff: write every differing query and pair, with the rule, to this CSV.")
+@click.option("--diff-plot", type=click.Path(path_type=Path), default=None,
+              help="With --diff: the trajectory with the differing revisit queries marked "
+                   "(.png/.pdf/.svg).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --diff-csv / --diff-plot.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_frame, check_scans,
-            gt_kind, cache_dir, as_json, reader_options):
+            gt_kind, cache_dir, explain, diff, diff_csv, diff_plot, overwrite, as_json,
+            reader_options):
     """Count positive pairs and revisit queries of SEQUENCE (or of --poses).
 
     Pairs are ordered pairs (i, j), i != j, positive when closer than --radius;
     a revisit query has a positive partner at least --exclude frames earlier.
     """
+    if explain is not None or diff is not None:
+        if check_scans or gt_kind != "pose":
+            raise LirisError("--check-scans" if check_scans else "--gt overlap",
+                             "not with --explain / --diff (--explain reports the pair's overlap "
+                             "when the scans are there)")
+        return _explain_or_diff(sequence, poses_path, calib_path, explain, diff, diff_csv,
+                                diff_plot, overwrite, as_json, reader_options)
+    if diff_csv is not None or diff_plot is not None:
+        raise LirisError("--diff-csv/--diff-plot", "only with --diff A B")
     conv = current_convention()  # --convention (issue 17): per-query rules, windows in seconds
     seconds = conv.exclude_seconds is not None
     exclude_frames, exclude_name = (1, "seconds") if seconds else parse_exclude(exclude)
@@ -51,10 +79,14 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
         sequence, poses_path, calib_path, pose_frame, reader_options
     )
     gt = compute_ground_truth(positions, radius, exclude_frames, distance, pose_frame)
+    if exclude_name == "custom" and conv.name not in ("liris", "custom"):
+        exclude_name = f"convention {conv.name}"  # E came from the convention, not from --exclude
     summary = {"source": str(source), **gt.summary(), "exclude_preset": exclude_name}
-    if conv.name != "liris":
-        conv = with_overrides(conv, pose_frame=pose_frame)
-        summary.update(convention_counts(positions, conv, getattr(seq, "times", None)))
+    conv = with_overrides(conv, pose_frame=pose_frame)
+    counts = convention_counts(positions, conv, getattr(seq, "times", None))
+    if conv.name == "liris":  # gt.summary() already counted; keep its numbers, add the keys
+        counts = {k: v for k, v in counts.items() if k not in summary}
+    summary.update(counts)
     if check_scans:
         if seq is None:
             raise LirisError("--check-scans", "needs a SEQUENCE folder, not only --poses")
@@ -68,6 +100,75 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
         echo_json(summary)
     else:
         echo_table([summary])
+
+
+def _explain_or_diff(sequence, poses_path, calib_path, explain, diff, diff_csv, diff_plot,
+                     overwrite, as_json, reader_options):
+    """``--explain I J`` or ``--diff A B`` (lidar_iris_eval.evaluation.explain)."""
+    from lidar_iris_eval.evaluation import explain as ex
+
+    given = [f"--{n}" for n in ("radius", "exclude", "distance", "pose_frame", "convention_name")
+             if _given(n)]
+    if given:
+        raise LirisError(given[0].replace("_", "-").replace("-name", ""),
+                         "--explain and --diff use every preset's own rules; leave it out")
+    if explain is not None and diff is not None:
+        raise LirisError("--explain", "give --explain or --diff, not both")
+    if explain is not None and (diff_csv is not None or diff_plot is not None):
+        raise LirisError("--diff-csv/--diff-plot", "only with --diff A B")
+    if diff is not None:
+        for flag, name in zip(("A", "B"), diff, strict=True):
+            ex.preset_named(name, f"--diff {flag}=")  # fails before the poses are read
+        if diff[0] == diff[1]:
+            raise LirisError(f"--diff {diff[0]} {diff[1]}", "give two different conventions")
+        outputs = [p for p in (diff_csv, diff_plot) if p is not None]
+        if diff_plot is not None:
+            figure_format(diff_plot, "--diff-plot")
+        for path, flag in ((diff_csv, "--diff-csv"), (diff_plot, "--diff-plot")):
+            if path is not None:
+                check_output_file(path, flag)
+        check_new_files(outputs, overwrite, "--diff-csv/--diff-plot",
+                        inputs=[p for p in (sequence, poses_path, calib_path) if p is not None])
+    traj = ex.load_trajectory(sequence, poses_path, calib_path, reader_options)
+    if explain is not None:
+        result = ex.explain_pair(traj, *explain)
+        if as_json:
+            echo_json(result)
+        else:
+            _echo_explain(result)
+        return None
+    result = ex.diff_conventions(traj, *diff)
+    summary = {"source": traj.source, "frames": traj.n_frames, **result.summary()}
+    if diff_csv is not None:
+        summary["diff_csv"] = str(diff_csv)
+        summary["diff_csv_rows"] = ex.write_diff_csv(result, diff_csv)
+    if diff_plot is not None:
+        from lidar_iris_eval.plotting.convention_diff import plot_convention_diff
+
+        summary["diff_plot"] = plot_convention_diff(result, diff_plot)
+    if as_json:
+        echo_json(summary)
+    else:
+        echo_table([{k: v for k, v in summary.items()}])
+    return None
+
+
+def _echo_explain(result: dict) -> None:
+    """``--explain`` as text: the pair, then one line per preset with its deciding rule."""
+    pair = result["pair"]
+    click.echo(f"pair {pair['i']} - {pair['j']} of {result['source']} ({result['frames']} frames)")
+    for key, value in pair.items():
+        if key not in ("i", "j"):
+            click.echo(f"  {key}: {format_value(value)}")
+    rows = [{"convention": r["convention"], "pair": r["status"],
+             f"I={pair['i']} revisit query": r["i_revisit_query"],
+             "radius": r["radius_m"], "window": r["window"], "distance": r["distance"],
+             "frame": r["pose_frame"]} for r in result["conventions"]]
+    echo_table(rows)
+    click.echo("")
+    for r in result["conventions"]:
+        click.echo(f"{r['convention']}: {r['status']} - {r['rule']}")
+        click.echo(f"{' ' * len(r['convention'])}  {pair['i']} as a query: {r['i_rule']}")
 
 
 def _positions(sequence, poses_path, calib_path, pose_frame, reader_options):

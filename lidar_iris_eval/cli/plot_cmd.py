@@ -19,12 +19,17 @@ import click
                    "compare-<runs>/ next to the first run].")
 @click.option("--frame", type=int, default=None,
               help="Frame for the LiDAR Iris figures [default: first revisit query].")
-def command(results, compare, fmt, out_dir, frame):
+@click.option("--failures", type=int, default=None, metavar="N",
+              help="Also the failure atlas: per method, the N most confident false positives "
+                   "and the N worst-missed revisit queries (failures_<method>; needs the "
+                   "run's scans).")
+def command(results, compare, fmt, out_dir, frame, failures):
     """Write figures for RESULTS (a folder written by `liris eval`).
 
     One run gives pr_protocol1, pr_protocol2, affinity, trajectory, timing,
     iris_frame and iris_alignment (those whose inputs exist; the LiDAR Iris
-    figures need the run's sequence on disk). With --compare, two or more runs
+    figures need the run's sequence on disk), and with --failures N the
+    failure atlas failures_<method>. With --compare, two or more runs
     give pr_protocol1 and pr_protocol2 with one curve per run and method.
 
     Figures are derived outputs: files of the same name in the default output
@@ -37,10 +42,12 @@ def command(results, compare, fmt, out_dir, frame):
     if compare:
         if frame is not None:
             raise LirisError("--frame", "applies to a single run, not --compare")
+        if failures is not None:
+            raise LirisError("--failures", "applies to a single run, not --compare")
         written = plot_compare(list(results), out_dir, fmt)
     else:
         if len(results) != 1:
             raise LirisError("liris plot", "give one RESULTS directory, or use --compare")
-        written = plot_run(results[0], out_dir, fmt, frame=frame)
+        written = plot_run(results[0], out_dir, fmt, frame=frame, failures=failures)
     for path in written:
         click.echo(str(path))

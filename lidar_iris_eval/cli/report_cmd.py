@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from lidar_iris_eval.report_html.page import MAX_AFFINITY_PX
+from lidar_iris_eval.report_html.page import DEFAULT_FAILURES, MAX_AFFINITY_PX
 
 
 @click.command("report")
@@ -16,14 +16,19 @@ from lidar_iris_eval.report_html.page import MAX_AFFINITY_PX
 @click.option("--overwrite", is_flag=True, help="Replace an existing report folder.")
 @click.option("--max-affinity-px", type=click.IntRange(min=16), default=MAX_AFFINITY_PX,
               show_default=True, help="Largest side of an embedded affinity image.")
-def command(run, out, overwrite, max_affinity_px):
+@click.option("--failures", type=click.IntRange(min=0), default=DEFAULT_FAILURES,
+              show_default=True, metavar="N",
+              help="Failure atlas: per method the N most confident false positives and the N "
+                   "worst-missed revisits (0: no atlas section; needs the run's scans).")
+def command(run, out, overwrite, max_affinity_px, failures):
     """Write an HTML page for RUN: interactive PR curves, affinity images, the
-    trajectory with TP/FP/missed markers, the metrics table and the conventions.
+    trajectory with TP/FP/missed markers, the metrics table, the conventions,
+    the convention band (runs made with --convention-band) and the failure atlas.
 
     The page works offline: plotly's JavaScript is written beside it. Needs
     plotly (pip install 'lidar_iris_eval[report]').
     """
     from lidar_iris_eval.report_html import build_report
 
-    page = build_report(run, out, overwrite, max_affinity_px)
+    page = build_report(run, out, overwrite, max_affinity_px, failures)
     click.echo(f"report: {page}")

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from lidar_iris_eval.runs import FORMATS, conventions_lines, load_run, render_table
+from lidar_iris_eval.runs import (
+    FORMATS,
+    conventions_lines,
+    load_run,
+    render_band_table,
+    render_table,
+)
 from lidar_iris_eval.runs.schema import result_warnings
 
 
@@ -23,7 +29,11 @@ def command(run, fmt, no_conventions):
     The table is the one `liris eval` printed for that run (same columns and
     rounding); CSV keeps full precision.
     """
-    from lidar_iris_eval.runs.loop_table import render_loop_table, render_seed_table
+    from lidar_iris_eval.runs.loop_table import (
+        render_loop_table,
+        render_loops_table,
+        render_seed_table,
+    )
 
     loaded = load_run(run)
     if not loaded.rows:
@@ -39,7 +49,9 @@ def command(run, fmt, no_conventions):
         return
     loop_table = render_loop_table(loaded.rows, fmt)  # registration recall (issue 23)
     seed_table = render_seed_table(loaded.rows, fmt)  # --seeds: mean [min, max]
-    for extra in (loop_table, seed_table):
+    loops_table = render_loops_table(loaded.rows, fmt)  # --loops files (docs/loops.md)
+    band_table = render_band_table(loaded.rows, fmt)  # --convention-band: own [min–max]
+    for extra in (loops_table, loop_table, seed_table, band_table):
         if extra:
             click.echo("")
             click.echo(extra)

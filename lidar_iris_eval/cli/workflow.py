@@ -74,7 +74,8 @@ def workflow_options(func):
         sessions = kwargs.get("query_path") is not None or kwargs.get("database_path") is not None
         paired = kwargs.get("pairs_text") is not None  # --pairs: the list is the protocol
         paired = paired or bool(kwargs.get("loop_paths"))  # --loops: protocol 1 of the file
-        if not kwargs.get("sequence") and not planned and not sessions:
+        loops_from_poses = bool(kwargs.get("loop_paths"))  # --poses alone (checked later)
+        if not kwargs.get("sequence") and not planned and not sessions and not loops_from_poses:
             raise LirisError("liris eval", "give a SEQUENCE (or --config RUN/config.yaml)")
         if not kwargs.get("protocols") and not planned and not sessions and not paired:
             raise LirisError("liris eval", "give --protocol 1 and/or --protocol 2")

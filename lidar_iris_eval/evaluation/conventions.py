@@ -218,13 +218,13 @@ def convention_counts(positions: np.ndarray, conv: Convention,
     limits = database_limits(len(positions), conv, times)
     coords = gt_coordinates(positions, conv.pose_frame, conv.distance)
     revisit = revisit_queries_within(coords, limits, conv.radius, conv.inclusive_radius)
+    # the same keys whatever the convention, so scripts reading --json need no cases
     out = {"convention": conv.name, "queries": int(np.count_nonzero(limits >= 0)),
-           "revisit_queries": int(np.count_nonzero(revisit))}
+           "revisit_queries": int(np.count_nonzero(revisit)),
+           "window_rule": None, "last_frame_query": bool(conv.last_frame_query)}
     if conv.exclude_seconds is not None:
         out["exclude"] = f"{conv.exclude_seconds:g}s"
         out["window_rule"] = conv.window_rule
-    if not conv.last_frame_query:
-        out["last_frame_query"] = False
     return out
 
 

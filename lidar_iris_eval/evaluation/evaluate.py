@@ -88,6 +88,8 @@ class DescriptorResult:
     rows: list[dict]
     #: registration of the protocol 1 matches (issue 23), when asked for
     loop_poses: lp.LoopPoses | None = None
+    #: ``--convention-band``: ``(values per preset, skipped presets, PR curve per preset)``
+    band: tuple[dict, dict, dict] | None = None
 
 
 @dataclass(frozen=True)
@@ -173,8 +175,16 @@ class Evaluation:
                 **self.loop_settings.conventions(),
                 **({"odometry": config["odometry"], "odometry_rule": ODOMETRY_RULE}
                    if config.get("odometry") else {}),
+                **({"convention_band": _band_rule()}
+                   if any(r.band is not None for r in self.results) else {}),
             },
         }
+
+
+def _band_rule() -> str:
+    from lidar_iris_eval.evaluation.band import BAND_RULE
+
+    return BAND_RULE
 
 
 #: what ``--odometry`` means, for the metrics.json header
@@ -242,6 +252,7 @@ def evaluate(
     executor: Any = None,
     loop_settings: lp.LoopPoseSettings | None = None,
     ranking: bool = False,
+    convention_band: bool = False,
 ) -> Evaluation:
     """Extract and evaluate ``descriptors`` on ``sequence`` under ``settings``.
 
@@ -268,6 +279,10 @@ def evaluate(
     ranking : also rank every protocol 1 query's database (Recall@1..25,
         Recall@1 %, MRR in the protocol 1 row; one more matching pass,
         :func:`ranking_row`).
+    convention_band : also score protocol 1 under every convention preset that
+        applies to the run, from the same matching pass
+        (:mod:`~lidar_iris_eval.evaluation.band`); each protocol 1 row gets a
+        ``convention_band`` entry.
     """
     settings = Settings() if settings is None else settings
     if convention is not None:
@@ -294,8 +309,12 @@ def evaluate(
         dbs = extract_many(sequence, descriptors, cache=cache, workers=workers,
                            progress=progress, executor=executor)  # one read per scan
     times = getattr(sequence, "times", None) if settings.exclude_seconds is not None else None
+    plan = None
+    if convention_band:
+        plan = _band_plan(sequence, settings, pose_frame, protocols, loop_settings)
     matched = [_evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
-                             settings, progress, times, executor)
+                             settings, progress, times, executor, plan,
+                             getattr(sequence, "times", None))
                for desc, db in zip(descriptors, dbs, strict=True)]
     # every method's registrations in one call: scans prepared once for the run
     loops = lp.register_all([r.protocol1 for r in matched], sequence, loop_settings,
@@ -307,6 +326,12 @@ def evaluate(
                                       loop_settings, progress, executor, loop)
         if ranking and result.protocol1 is not None:
             result.rows[0].update(ranking_row(desc, db, positions, settings, times))
+        if result.band is not None:
+            from lidar_iris_eval.evaluation.band import band_block
+
+            values, skipped, _ = result.band
+            result.rows[0]["convention_band"] = band_block(result.rows[0], settings.name,
+                                                           values, skipped)
         results.append(result)
     return Evaluation(sequence, settings, protocols, pose_frame, results,
                       time.perf_counter() - started, loop_settings=loop_settings)
@@ -320,15 +345,27 @@ def _with_loop_poses(result: DescriptorResult, sequence, positions, forward, set
     p1, loops = lp.apply(result.protocol1, sequence, positions, forward, loop_settings,
                          desc_name=result.descriptor.name, progress=progress,
                          run_settings=settings, executor=executor, loops=loops)
-    rows = _rows(result.descriptor, result.db, p1, result.protocol2, settings) \
+    rows = result_rows(result.descriptor, result.db, p1, result.protocol2, settings) \
         if p1 is not result.protocol1 else [dict(r) for r in result.rows]
     rows[0].update(lp.loop_pose_metrics(p1, loops, loop_settings,
                                         points=lp.has_points(sequence)))
     return replace(result, protocol1=p1, rows=rows, loop_poses=loops)
 
 
+def _band_plan(sequence, settings: Settings, pose_frame: str, protocols, loop_settings):
+    """The presets of ``--convention-band`` (refused where it would not mean one pass)."""
+    from lidar_iris_eval.evaluation.band import band_plan
+
+    if 1 not in protocols:
+        raise LirisError("--convention-band", "scores protocol 1; add --protocol 1")
+    if loop_settings.refine is not None or loop_settings.gt_pose != "dataset":
+        raise LirisError("--convention-band", "the band scores the plain protocol 1 matches; "
+                         "it does not combine with --refine or --gt-pose refined")
+    return band_plan(sequence, settings, pose_frame)
+
+
 def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings, progress,
-                  times=None, executor=None) -> DescriptorResult:
+                  times=None, executor=None, plan=None, seq_times=None) -> DescriptorResult:
     """Run the requested protocols for one descriptor and build its metric rows.
 
     Protocols 1 and 2 are reducers of one block pass when both are asked
@@ -341,6 +378,15 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
     limits = database_limits(n, s, times)
     rows_to_match = n if 2 in protocols else int(np.count_nonzero(limits >= 0))
     common = dict(forward=forward, lidar_poses=lidar_poses, executor=executor)
+    keep: list[int] = []
+    left: dict[str, str] = {}
+    if plan is not None:
+        from lidar_iris_eval.evaluation.band import usable_presets
+
+        keep, left = usable_presets(plan, desc, s, limits)
+        left = {**plan.skipped, **left}
+        if keep:
+            common["band_limits"] = plan.limits[keep]
     with tqdm(total=rows_to_match, desc=f"{desc.name} matching", unit="query",
               file=sys.stderr, disable=not progress, leave=False) as bar:
         if protocols == (1, 2) and (s.candidates is None or desc.two_stage):
@@ -350,13 +396,22 @@ def _evaluate_one(desc, db, positions, forward, lidar_poses, protocols, settings
             if 1 in protocols:
                 p1 = protocol1(desc, db.descriptors, positions, s, times=times,
                                progress=bar.update, **common)
+            common.pop("band_limits", None)
             if 2 in protocols:
                 # the bar counted protocol 1 already; don't overrun it
                 p2 = protocol2(desc, db.descriptors, positions,
                                s.replace(candidates=s.candidates if desc.two_stage else None),
                                progress=None if p1 is not None else bar.update,
                                executor=executor)
-    return DescriptorResult(desc, db, p1, p2, _rows(desc, db, p1, p2, s))
+    band = None
+    if plan is not None:
+        from lidar_iris_eval.evaluation.band import score_band
+
+        values, curves = score_band(p1.band_matches or (), positions,
+                                    [plan.presets[k] for k in keep], plan.limits[keep],
+                                    seq_times)
+        band = (values, left, curves)
+    return DescriptorResult(desc, db, p1, p2, result_rows(desc, db, p1, p2, s), band=band)
 
 
 def ranking_row(desc, db, positions, settings: Settings, times=None) -> dict:
@@ -403,7 +458,9 @@ def _odometry_ms(db, source: str) -> float | None:
     return float(seconds.mean() * 1e3) if len(seconds) else None
 
 
-def _rows(desc, db, p1, p2, settings) -> list[dict]:
+def result_rows(desc, db, p1, p2, settings) -> list[dict]:
+    """The ``metrics.json`` rows of one method (one per protocol scored): what every method
+    and every ``--loops`` source (evaluation/external_loops.py) reports."""
     base = {"descriptor": desc.name, "preset": desc.preset, **desc.run_info()}
     if "odometry" in base:  # a local-map method: what its odometry cost per scan
         base["odometry_ms_per_scan"] = _odometry_ms(db, base["odometry"])

@@ -53,6 +53,16 @@ def ground_plane_axes(frame: str) -> tuple[int, int]:
     return PLANAR_AXES[frame]
 
 
+def within_radius(dist: np.ndarray | float, radius: float, inclusive: bool = False):
+    """True where ``dist`` counts as within ``radius``: strict ``<``, or ``<=`` if ``inclusive``.
+
+    The one radius test of ground truth: :func:`positive_pairs`,
+    :func:`revisit_queries_within` and ``liris gt --explain`` all use it.
+    """
+    dist = np.asarray(dist, dtype=np.float64)
+    return dist <= radius if inclusive else dist < radius
+
+
 def positive_pairs(coords: np.ndarray, radius: float = 4.0) -> np.ndarray:
     """Unordered pairs ``(i, j)``, ``i < j``, closer than ``radius`` (strictly).
 
@@ -66,7 +76,7 @@ def positive_pairs(coords: np.ndarray, radius: float = 4.0) -> np.ndarray:
         return np.empty((0, 2), dtype=np.int64)
     pairs.sort(axis=1)
     dist = np.linalg.norm(coords[pairs[:, 0]] - coords[pairs[:, 1]], axis=1)
-    pairs = pairs[dist < radius]
+    pairs = pairs[within_radius(dist, radius)]
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))
     return pairs[order]
 
@@ -161,7 +171,7 @@ def compute_ground_truth(
 
 
 def database_limits(n_frames: int, conv, times: np.ndarray | None = None,
-                    source: str = "times.txt") -> np.ndarray:
+                    source: str = "scan times") -> np.ndarray:
     """``(N,)`` last database index each query may match, ``-1`` when it is not a query.
 
     ``conv`` is a :class:`~lidar_iris_eval.evaluation.settings.Settings`. Frame
@@ -217,7 +227,7 @@ def revisit_queries_within(coords: np.ndarray, limits: np.ndarray, radius: float
     pairs.sort(axis=1)
     if not inclusive:
         dist = np.linalg.norm(coords[pairs[:, 0]] - coords[pairs[:, 1]], axis=1)
-        pairs = pairs[dist < radius]
+        pairs = pairs[within_radius(dist, radius)]
     early, late = pairs[:, 0], pairs[:, 1]
     ok = early <= limits[late]
     revisit[late[ok]] = True

@@ -36,12 +36,12 @@ Every file is written atomically.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.io.loops import G2OGraph, parse_g2o
 from lidar_iris_eval.matching.geometry import quaternion_xyzw
 
 EXPORT_SUFFIXES = (".g2o", ".tum", ".txt")
@@ -137,66 +137,7 @@ def export_loop_file(path: str | Path, query: np.ndarray, match: np.ndarray, pos
     return written
 
 
-@dataclass(frozen=True)
-class G2OGraph:
-    """What :func:`read_g2o` found: vertex poses by id, edges, fixed ids."""
-
-    vertices: dict[int, np.ndarray]
-    edges: list[tuple[int, int, np.ndarray, np.ndarray]]
-    fixed: list[int]
-
-
-def _pose_from(values: list[float]) -> np.ndarray:
-    from lidar_iris_eval.io.poses import quaternion_to_matrix
-
-    T = np.eye(4)
-    T[:3, 3] = values[:3]
-    q = np.asarray(values[3:7], dtype=np.float64)
-    T[:3, :3] = quaternion_to_matrix(q[None] / np.linalg.norm(q))[0]
-    return T
-
-
 def read_g2o(path: str | Path) -> G2OGraph:
-    """A small reader of g2o's 3-D records (VERTEX_SE3:QUAT, EDGE_SE3:QUAT, FIX).
-
-    Follows the format of g2o's ``types_slam3d``: a vertex is ``id`` + 7
-    numbers (translation, quaternion x y z w); an edge is two ids + 7 numbers
-    + 21 upper-triangular information entries; any other tag is an error.
-    The information matrix is rebuilt symmetric and must be positive definite.
-    """
-    path = Path(path)
-    vertices: dict[int, np.ndarray] = {}
-    edges = []
-    fixed = []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
-        parts = line.split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        tag, rest = parts[0], parts[1:]
-        where = f"{path}:{number}"
-        if tag == "VERTEX_SE3:QUAT":
-            if len(rest) != 8:
-                raise LirisError(where, f"VERTEX_SE3:QUAT needs 8 fields, got {len(rest)}")
-            vid = int(rest[0])
-            if vid in vertices:
-                raise LirisError(where, f"vertex {vid} given twice")
-            vertices[vid] = _pose_from([float(v) for v in rest[1:]])
-        elif tag == "EDGE_SE3:QUAT":
-            if len(rest) != 2 + 7 + 21:
-                raise LirisError(where, f"EDGE_SE3:QUAT needs 30 fields, got {len(rest)}")
-            a, b = int(rest[0]), int(rest[1])
-            values = [float(v) for v in rest[2:]]
-            info = np.zeros((6, 6))
-            info[np.triu_indices(6)] = values[7:]
-            info = info + np.triu(info, 1).T
-            if np.linalg.eigvalsh(info).min() <= 0:
-                raise LirisError(where, "information matrix is not positive definite")
-            edges.append((a, b, _pose_from(values[:7]), info))
-        elif tag == "FIX":
-            fixed.extend(int(v) for v in rest)
-        else:
-            raise LirisError(where, f"unknown record {tag}")
-    for a, b, _, _ in edges:
-        if a not in vertices or b not in vertices:
-            raise LirisError(path, f"edge {a}-{b} names a missing vertex")
-    return G2OGraph(vertices, edges, fixed)
+    """A g2o file's 3-D records (VERTEX_SE3:QUAT, EDGE_SE3:QUAT, FIX), every edge's
+    vertices defined: :func:`lidar_iris_eval.io.loops.parse_g2o`, the one g2o reader."""
+    return parse_g2o(path, need_vertices=True)

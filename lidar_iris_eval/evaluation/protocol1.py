@@ -80,6 +80,8 @@ class Protocol1Result:
     pose: np.ndarray | None = None
     rre_deg: np.ndarray | None = None
     rte_m: np.ndarray | None = None
+    #: ``--convention-band``: the best matches under each band preset's limits, same pass
+    band_matches: tuple[BestMatches, ...] | None = None
 
     def table(self) -> dict[str, np.ndarray]:
         """Columns of ``matches.csv``: query, match, distance, yaw_deg, match_dist_m,
@@ -345,6 +347,39 @@ def match_protocol1(descriptor: Descriptor, descriptors, limits: np.ndarray,
                         executor)
 
 
+def match_with_band(descriptor: Descriptor, descriptors, limits: np.ndarray,
+                    settings: Settings, band_limits: np.ndarray | None,
+                    progress: Callable[[int], object] | None = None,
+                    executor=None) -> tuple[BestMatches, tuple[BestMatches, ...] | None]:
+    """:func:`match_protocol1`, plus the best matches under each row of ``band_limits``
+    (``(K, N)``, ``--convention-band``) from the same pass.
+
+    The exhaustive pass reduces every block under all limits at once. A
+    two-stage method's band rows must be windows equal to the run's on their
+    queries (:func:`~lidar_iris_eval.evaluation.band.usable_presets`): their
+    matches are the run's own, restricted to their queries.
+    """
+    if band_limits is None:
+        return match_protocol1(descriptor, descriptors, limits, settings, progress,
+                               executor), None
+    if settings.candidates is not None or descriptor.two_stage:
+        from lidar_iris_eval.evaluation.band import restrict_matches
+
+        matches = match_protocol1(descriptor, descriptors, limits, settings, progress, executor)
+        return matches, tuple(restrict_matches(matches, lim) for lim in band_limits)
+    stacked = np.vstack([limits[None, :], np.asarray(band_limits, dtype=np.int64)])
+    every = best_matches(descriptor, descriptors, stacked, settings.pair_budget, progress,
+                         executor)
+    return every[0], tuple(every[1:])
+
+
+def with_band(result: Protocol1Result, band: tuple[BestMatches, ...] | None) -> Protocol1Result:
+    """``result`` carrying the band's matches (unchanged when there is no band)."""
+    from dataclasses import replace
+
+    return result if band is None else replace(result, band_matches=band)
+
+
 def protocol1(
     descriptor: Descriptor,
     descriptors: np.ndarray,
@@ -356,6 +391,7 @@ def protocol1(
     progress: Callable[[int], object] | None = None,
     lidar_poses: np.ndarray | None = None,
     executor=None,
+    band_limits: np.ndarray | None = None,
     **values,
 ) -> Protocol1Result:
     """Run protocol 1 end to end on stacked descriptors and positions.
@@ -369,9 +405,12 @@ def protocol1(
     window in seconds. ``candidates=K`` uses the descriptor's retrieval stage
     and verification instead of the exhaustive search; two-stage methods
     always do, with ``K`` defaulting to ``descriptor.default_candidates()``.
+    ``band_limits`` (``(K, N)``): also the best matches under each of those
+    limits, from the same pass (``Protocol1Result.band_matches``).
     """
     settings, descriptors, limits, gt = protocol1_inputs(descriptors, positions, settings,
                                                          times, values)
-    matches = match_protocol1(descriptor, descriptors, limits, settings, progress, executor)
-    return score_protocol1(matches, positions, gt, forward=forward, lidar_poses=lidar_poses,
-                           **scoring_rules(settings))
+    matches, band = match_with_band(descriptor, descriptors, limits, settings, band_limits,
+                                    progress, executor)
+    return with_band(score_protocol1(matches, positions, gt, forward=forward,
+                                     lidar_poses=lidar_poses, **scoring_rules(settings)), band)

@@ -25,12 +25,13 @@ from lidar_iris_eval.evaluation.ground_truth import GroundTruth, compute_ground_
 from lidar_iris_eval.evaluation.metrics import PRCurve, pr_curve, summarize
 from lidar_iris_eval.evaluation.protocol1 import (
     Protocol1Result,
-    match_protocol1,
+    match_with_band,
     protocol1_inputs,
     score_protocol1,
     scoring_rules,
     settings_from,
     stacked_descriptors,
+    with_band,
 )
 from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.evaluation.streaming_pr import (
@@ -42,7 +43,6 @@ from lidar_iris_eval.matching.blocks import Affinity, affinity_matrix
 from lidar_iris_eval.matching.retrieval import (
     PROTOCOL2_RULE,
     two_stage_affinity,
-    two_stage_matches,
 )
 
 #: protocol 2 rule of global descriptors (written to metrics.json)
@@ -157,6 +157,7 @@ def protocols_1_and_2(
     lidar_poses: np.ndarray | None = None,
     affinity_storage: str = "auto",
     executor=None,
+    band_limits: np.ndarray | None = None,
     **values,
 ) -> tuple[Protocol1Result, Protocol2Result]:
     """Both protocols from one pass: protocol 1 and 2 are reducers of the same blocks.
@@ -169,6 +170,8 @@ def protocols_1_and_2(
     ``descriptor.default_candidates()``); a global descriptor with ``candidates`` set
     takes protocol 1 from the same matcher as
     :func:`~lidar_iris_eval.evaluation.protocol1.protocol1` (its retrieval stage).
+    ``band_limits`` (``(K, N)``, ``--convention-band``): protocol 1's best
+    matches under each of those limits too, from the same pass.
     Returns ``(Protocol1Result, Protocol2Result)``.
     """
     s, descriptors, limits, gt1 = protocol1_inputs(descriptors, positions, settings, times,
@@ -177,19 +180,26 @@ def protocols_1_and_2(
                                                       s.pose_frame)
     if descriptor.two_stage:
         k = s.candidates if s.candidates is not None else descriptor.default_candidates()
-        matches = two_stage_matches(descriptor, descriptors, limits, k, progress)
+        matches, band = match_with_band(descriptor, descriptors, limits, s, band_limits,
+                                        progress, executor)
         affinity, rule = two_stage_affinity(descriptor, descriptors, k, None), PROTOCOL2_RULE
         p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
                             **scoring_rules(s))
-        return p1, score_protocol2(affinity, gt2, rule)
+        return with_band(p1, band), score_protocol2(affinity, gt2, rule)
     if s.candidates is not None:  # a global descriptor's retrieval stage, as protocol1 runs it
-        matches = match_protocol1(descriptor, descriptors, limits, s, progress, executor)
-        p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
-                             **scoring_rules(s))
+        matches, band = match_with_band(descriptor, descriptors, limits, s, band_limits,
+                                        progress, executor)
+        p1 = with_band(score_protocol1(matches, positions, gt1, forward=forward,
+                                       lidar_poses=lidar_poses, **scoring_rules(s)), band)
         return p1, protocol2(descriptor, descriptors, positions, s.replace(candidates=None),
                              affinity_storage=affinity_storage, executor=executor)
-    affinity, curve, matches = _streamed(descriptor, descriptors, gt2, limits, s.pair_budget,
+    stacked = limits if band_limits is None else \
+        np.vstack([limits[None, :], np.asarray(band_limits, dtype=np.int64)])
+    affinity, curve, matches = _streamed(descriptor, descriptors, gt2, stacked, s.pair_budget,
                                          progress, affinity_storage, executor)
-    p1 = score_protocol1(matches, positions, gt1, forward=forward, lidar_poses=lidar_poses,
-                            **scoring_rules(s))
+    band = None
+    if band_limits is not None:
+        matches, band = matches[0], tuple(matches[1:])
+    p1 = with_band(score_protocol1(matches, positions, gt1, forward=forward,
+                                   lidar_poses=lidar_poses, **scoring_rules(s)), band)
     return p1, score_protocol2(affinity, gt2, ALL_PAIRS_RULE, curve)

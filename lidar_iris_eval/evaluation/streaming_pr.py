@@ -416,9 +416,10 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     pre_s = time.perf_counter() - start
     kind = resolve_storage(storage, n)
     if exclude is not None:
-        from lidar_iris_eval.matching.blocks import query_limits
+        from lidar_iris_eval.matching.blocks import stack_limits
 
-        exclude = query_limits(n, exclude)
+        stacked, several = stack_limits(n, exclude)  # several: --convention-band
+        exclude = stacked if several else stacked[0]
     if executor is not None and executor.distributes_blocks:
         kept = kind if storage != "auto" else "none"  # auto: nothing to warn about
         return _stream_on_cluster(executor, descriptor, descriptors, pp, expected,
@@ -456,7 +457,7 @@ def _stream_on_cluster(engine, descriptor, descriptors, pp, expected, n_positive
     import time
 
     from lidar_iris_eval.errors import warn
-    from lidar_iris_eval.matching.blocks import BestMatches, block_rows, query_blocks
+    from lidar_iris_eval.matching.blocks import block_rows, query_blocks
 
     n = len(descriptors)
     if kind != "none" and n > 0:
@@ -479,10 +480,15 @@ def _stream_on_cluster(engine, descriptor, descriptors, pp, expected, n_positive
     seconds = time.perf_counter() - start + pre_s
     matches = None
     if exclude is not None:
+        from lidar_iris_eval.matching.blocks import split_matches
+
         match, dist, yaw = res["p1"]
-        queries = np.flatnonzero(exclude >= 0)
-        matches = BestMatches(queries, match[queries], dist[queries], yaw[queries], seconds,
-                              evaluations, "affinity")
+        stacked = np.atleast_2d(exclude)
+        queries = np.flatnonzero(stacked.max(axis=0) >= 0)
+        matches = split_matches(stacked, queries, np.atleast_2d(match)[:, queries],
+                                np.atleast_2d(dist)[:, queries], np.atleast_2d(yaw)[:, queries],
+                                seconds, evaluations, "affinity")
+        matches = matches if np.ndim(exclude) == 2 else matches[0]
     affinity = StreamedAffinity(matrix=None, seconds=seconds, n_evaluations=evaluations,
                                 symmetric=bool(descriptor.symmetric), storage="none",
                                 passes=passes)
@@ -500,7 +506,7 @@ def protocol2_block(descriptor, descriptors, template: StreamingPR, pp: Positive
     """
     import time
 
-    from lidar_iris_eval.matching.blocks import _best_in_block, _pairwise
+    from lidar_iris_eval.matching.blocks import _pairwise, best_in_block
 
     symmetric = bool(descriptor.symmetric)
     n = len(descriptors)
@@ -509,10 +515,10 @@ def protocol2_block(descriptor, descriptors, template: StreamingPR, pp: Positive
     d, y = _pairwise(descriptor, descriptors[a:b], descriptors[:width])
     seconds = time.perf_counter() - start
     out = {"a": a, "b": b, "evaluations": d.size, "seconds": seconds}
-    if limits is not None:
-        rows = np.flatnonzero(limits[a:b] >= 0)
+    if limits is not None:  # (N,) limits, or (K, N) under --convention-band
+        rows = np.flatnonzero(np.atleast_2d(limits).max(axis=0)[a:b] >= 0)
         if len(rows):
-            out["p1"] = (a + rows, *_best_in_block(d[rows], y[rows], limits[a + rows]))
+            out["p1"] = (a + rows, *best_in_block(d[rows], y[rows], limits[..., a + rows]))
     acc = template.fresh()
     out["positives"], out["mismatch"] = count_block(acc, pp, expected, symmetric, a, b,
                                                     d.astype(np.float32))
@@ -531,7 +537,9 @@ def stream_blocks(executor, descriptor, descriptors, template: StreamingPR,
     evaluations, seconds = 0, 0.0
     p1 = None
     if limits is not None:
-        p1 = (np.full(n, -1, dtype=np.int64), np.full(n, np.inf), np.full(n, np.nan))
+        shape = np.shape(limits)[:-1] + (n,)
+        p1 = (np.full(shape, -1, dtype=np.int64), np.full(shape, np.inf),
+              np.full(shape, np.nan))
     shared = (descriptor, descriptors, template, pp, expected, limits)
     for _, r in executor.imap(protocol2_block, blocks, shared=shared):
         acc.merge(r["counts"])
@@ -541,7 +549,7 @@ def stream_blocks(executor, descriptor, descriptors, template: StreamingPR,
         seconds += float(r["seconds"])
         if p1 is not None and "p1" in r:
             rows, match, dist, yaw = r["p1"]
-            p1[0][rows], p1[1][rows], p1[2][rows] = match, dist, yaw
+            p1[0][..., rows], p1[1][..., rows], p1[2][..., rows] = match, dist, yaw
         if progress is not None:
             progress(r["b"] - r["a"])
     return {"acc": acc, "gathered": gathered, "mismatch": mismatch, "p1": p1,

@@ -32,7 +32,13 @@ import numpy as np
 from lidar_iris_eval.errors import LirisError, option
 from lidar_iris_eval.errors import options as option_names
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
-from lidar_iris_eval.io.sequence import Sequence, check_counts, find_labels, list_scans
+from lidar_iris_eval.io.sequence import (
+    Sequence,
+    check_counts,
+    find_labels,
+    list_scans,
+    read_times,
+)
 from lidar_iris_eval.io.timematch import (
     DEFAULT_TOLERANCE,
     match_poses,
@@ -76,9 +82,9 @@ def open_folder(
         raise LirisError(folder, f"{option_names(opts)}: not used for a folder of scans")
     scan_paths = list_scans(folder)
     frame_ids = None
-    scan_times = _read_times(Path(times), len(scan_paths), folder) if times else None
+    scan_times = _read_times(Path(times), scan_paths, folder) if times else None
     if scan_times is None and (found := _find_first(folder, [TIMES_FILE_NAME])) is not None:
-        scan_times = _read_times(found, len(scan_paths), folder)
+        scan_times = _read_times(found, scan_paths, folder)
     if scan_times is None and (stamps := stamps_from_names(scan_paths)) is not None:
         order = np.argsort(stamps, kind="stable")
         scan_paths = [scan_paths[i] for i in order]
@@ -94,7 +100,7 @@ def open_folder(
                 " (poses have no timestamps)" if pose_times is None
                 else " (no times.txt and file names are not stamps, so scans cannot be timed)"
             )
-            check_counts(len(scan_paths), len(raw_poses), folder, f"{pose_path}{hint}")
+            check_counts(scan_paths, len(raw_poses), folder, f"{pose_path}{hint}")
         keep, raw_poses = match_poses(scan_times, pose_times, raw_poses, tolerance, pose_path)
 
     tr = _calib(folder, calib, required=not lidar_frame, pose_path=pose_path)
@@ -165,19 +171,9 @@ def _calib(folder: Path, calib: str | Path | None, required: bool, pose_path: Pa
     return read_calib(calib_path)
 
 
-def _read_times(path: Path, n_scans: int, folder: Path) -> np.ndarray:
-    if not path.is_file():
-        raise LirisError(path, "times file not found")
-    try:
-        values = np.loadtxt(path, dtype=np.float64, ndmin=1, comments="#")
-    except ValueError:
-        raise LirisError(path, "malformed times file (one number per line expected)") from None
-    if values.ndim != 1:
-        raise LirisError(path, "malformed times file (one number per line expected)")
-    if len(values) != n_scans:
-        raise LirisError(
-            path, f"{len(values)} times but {n_scans} scans in {folder}; counts must be equal"
-        )
+def _read_times(path: Path, scan_paths: list[Path], folder: Path) -> np.ndarray:
+    values = read_times(path)
+    check_counts(scan_paths, len(values), folder, path, "times")
     return values
 
 

@@ -22,7 +22,13 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_kitti_poses
-from lidar_iris_eval.io.sequence import Sequence, check_counts, find_labels, list_scans
+from lidar_iris_eval.io.sequence import (
+    Sequence,
+    check_counts,
+    find_labels,
+    list_scans,
+    read_times,
+)
 
 
 def is_kitti_layout(path: Path) -> bool:
@@ -40,7 +46,7 @@ def find_kitti_poses(seq_dir: Path) -> Path | None:
 
 
 def read_camera_poses_and_calib(
-    pose_path: Path, calib_path: Path, n_scans: int, scans_dir: Path
+    pose_path: Path, calib_path: Path, scans: int | list[Path], scans_dir: Path
 ) -> tuple[np.ndarray, np.ndarray]:
     """KITTI camera-frame poses (one per scan, checked) and the ``Tr`` that converts them.
 
@@ -48,7 +54,7 @@ def read_camera_poses_and_calib(
     layout and the GOSMatch object layout.
     """
     camera_poses = read_kitti_poses(pose_path)
-    check_counts(n_scans, len(camera_poses), scans_dir, pose_path)
+    check_counts(scans, len(camera_poses), scans_dir, pose_path)
     if not calib_path.is_file():
         raise LirisError(calib_path, "calibration file not found (needed for LiDAR-frame poses)")
     return camera_poses, read_calib(calib_path)
@@ -72,13 +78,13 @@ def open_kitti(
         )
     calib_path = Path(calib) if calib is not None else seq_dir / "calib.txt"
     camera_poses, tr = read_camera_poses_and_calib(
-        pose_path, calib_path, len(scan_paths), seq_dir / "velodyne"
+        pose_path, calib_path, scan_paths, seq_dir / "velodyne"
     )
     times = None
     times_path = seq_dir / "times.txt"
     if times_path.is_file():
-        times = _read_times(times_path)
-        check_counts(len(scan_paths), len(times), seq_dir / "velodyne", times_path)
+        times = read_times(times_path)
+        check_counts(scan_paths, len(times), seq_dir / "velodyne", times_path, "times")
     labels_dir = seq_dir / "labels"
     return Sequence(
         name=seq_dir.name,
@@ -91,13 +97,3 @@ def open_kitti(
         label_paths=find_labels(labels_dir, scan_paths),
         labels_dir=labels_dir,
     )
-
-
-def _read_times(path: Path) -> np.ndarray:
-    try:
-        times = np.loadtxt(path, dtype=np.float64, ndmin=1)
-    except ValueError:
-        raise LirisError(path, "malformed times file (one number per line expected)") from None
-    if times.ndim != 1:
-        raise LirisError(path, "malformed times file (one number per line expected)")
-    return times

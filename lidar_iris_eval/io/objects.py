@@ -176,7 +176,7 @@ def open_objects(
     if not pose_path.is_file():
         raise LirisError(pose_path, "pose file not found (KITTI camera-frame poses needed)")
     calib_path = Path(calib) if calib is not None else root / "calib.txt"
-    camera_poses, tr = read_camera_poses_and_calib(pose_path, calib_path, len(scan_paths), folder)
+    camera_poses, tr = read_camera_poses_and_calib(pose_path, calib_path, scan_paths, folder)
     return ObjectSequence(
         name=root.name,
         path=root,

@@ -233,19 +233,80 @@ def _frame_id(path: Path, default: int) -> int:
     return int(path.stem) if path.stem.isdigit() else default
 
 
-def check_counts(n_scans: int, n_poses: int, scans_dir: Path, pose_path: Path) -> None:
-    """Scan and pose counts must match; say which files disagree."""
-    if n_scans != n_poses:
-        raise LirisError(
-            pose_path, f"{n_poses} poses but {n_scans} scans in {scans_dir}; counts must be equal"
-        )
+def check_counts(scans: int | list[Path], n_rows: int, scans_dir: Path, source,
+                 what: str = "poses") -> None:
+    """Scan and pose (or time) counts must match; say which files disagree.
+
+    Given the scan paths rather than their count, the message also names the
+    first gap in numeric file names (``000117.bin`` missing between its
+    neighbours), which is where such a mismatch usually comes from.
+    """
+    paths = scans if isinstance(scans, list) else None
+    n_scans = len(scans) if paths is not None else int(scans)
+    if n_scans == n_rows:
+        return
+    detail = ""
+    if paths:
+        gap = first_gap(paths)
+        if gap is not None:
+            detail = f"; no scan numbered {gap} (between {paths[0].name} and {paths[-1].name})"
+        else:
+            detail = f"; scans {paths[0].name} .. {paths[-1].name}"
+    raise LirisError(
+        source, f"{n_rows} {what} but {n_scans} scans in {scans_dir}{detail}; counts must be equal"
+    )
+
+
+def first_gap(paths: list[Path]) -> str | None:
+    """The first missing number in numeric file names, zero-padded as its neighbours, or None."""
+    if not all(p.stem.isdigit() for p in paths):
+        return None
+    numbers = sorted(int(p.stem) for p in paths)
+    for previous, current in zip(numbers[:-1], numbers[1:], strict=True):
+        if current > previous + 1:
+            return str(previous + 1).zfill(len(paths[0].stem))
+    return None
+
+
+def read_times(path: Path) -> np.ndarray:
+    """Scan times in seconds, one number per line (``#`` comments allowed), all finite."""
+    if not path.is_file():
+        raise LirisError(path, "times file not found")
+    try:
+        values = np.loadtxt(path, dtype=np.float64, ndmin=1, comments="#")
+    except ValueError:
+        raise LirisError(path, "malformed times file (one number per line expected)") from None
+    if values.ndim != 1:
+        raise LirisError(path, "malformed times file (one number per line expected)")
+    bad = np.flatnonzero(~np.isfinite(values))
+    if len(bad):
+        raise LirisError(path, f"time {bad[0] + 1} is {values[bad[0]]} (times must be finite)")
+    return values
+
+
+def scan_entries(folder: Path, wanted: Callable[[Path], bool]) -> list[Path]:
+    """Files in ``folder`` whose names ``wanted`` accepts; a dangling link among them is an error.
+
+    ``Path.is_file`` is False for a broken symbolic link and for a link loop,
+    so filtering on it would drop such a scan without a word and shift every
+    later scan against its pose.
+    """
+    files = []
+    for entry in folder.iterdir():
+        if not wanted(entry):
+            continue
+        if entry.is_file():
+            files.append(entry)
+        elif entry.is_symlink():
+            raise LirisError(entry, "scan is a broken symbolic link or a symbolic-link loop")
+    return files
 
 
 def list_scans(folder: Path) -> list[Path]:
     """Scan files in ``folder`` with a supported suffix, in natural (numeric) order."""
     if not folder.is_dir():
         raise LirisError(folder, "scan folder not found")
-    files = [p for p in folder.iterdir() if p.suffix.lower() in SCAN_READERS and p.is_file()]
+    files = scan_entries(folder, lambda p: p.suffix.lower() in SCAN_READERS)
     suffixes = {p.suffix.lower() for p in files}
     if len(suffixes) > 1:
         raise LirisError(folder, f"mixed scan formats {', '.join(sorted(suffixes))}; "

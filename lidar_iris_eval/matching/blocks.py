@@ -163,6 +163,64 @@ def _best_in_block(
     return match.astype(np.int64), best, best_yaw
 
 
+def _best_under_limits(
+    dist: np.ndarray, yaw: np.ndarray, limits: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_best_in_block` for ``(K, R)`` limits at once: ``(K, R)`` match, distance, yaw.
+
+    One prefix minimum per row serves every limit: the best column ``j <= L``
+    is the prefix minimum at column ``L`` and, ties to the smallest ``j`` as
+    in :func:`_best_in_block`, the last column where the prefix minimum
+    strictly dropped. ``limits[k, r] = -1`` gives no match for that row.
+    """
+    rows, width = dist.shape
+    masked = np.where(np.isnan(dist), np.inf, dist)
+    prefix = np.minimum.accumulate(masked, axis=1) if width else masked
+    dropped = np.empty((rows, width), dtype=bool)
+    if width:
+        dropped[:, 0] = True
+        dropped[:, 1:] = masked[:, 1:] < prefix[:, :-1]
+    where = np.maximum.accumulate(np.where(dropped, np.arange(width)[None, :], 0), axis=1) \
+        if width else np.zeros((rows, 0), dtype=np.int64)
+    lim = np.asarray(limits, dtype=np.int64)
+    ok = lim >= 0
+    col = np.clip(lim, 0, max(width - 1, 0))
+    r = np.broadcast_to(np.arange(rows)[None, :], lim.shape)
+    best = np.where(ok, prefix[r, col], np.inf) if width else np.full(lim.shape, np.inf)
+    match = where[r, col] if width else np.zeros(lim.shape, dtype=np.int64)
+    none = ~np.isfinite(best)
+    best_yaw = np.where(none, np.nan, yaw[r, match] if width else np.nan)
+    match = np.where(none, -1, match)
+    return match.astype(np.int64), best, best_yaw
+
+
+def best_in_block(dist: np.ndarray, yaw: np.ndarray, limits: np.ndarray):
+    """Best matches of a block's rows under ``(R,)`` limits, or ``(K, R)`` limits (band)."""
+    if np.ndim(limits) == 2:
+        return _best_under_limits(dist, yaw, limits)
+    return _best_in_block(dist, yaw, limits)
+
+
+def stack_limits(n_frames: int, window) -> tuple[np.ndarray, bool]:
+    """``(K, N)`` validated limits of ``window`` (E, one ``(N,)`` array or ``(K, N)``
+    arrays) and whether several were given."""
+    if not isinstance(window, (int, np.integer)) and np.ndim(window) == 2:
+        return np.stack([query_limits(n_frames, w) for w in window]), True
+    return query_limits(n_frames, window)[None, :], False
+
+
+def split_matches(stacked: np.ndarray, queries: np.ndarray, match, dist, yaw, seconds,
+                  evaluations, source) -> list[BestMatches]:
+    """Per limit vector ``k``: the :class:`BestMatches` of its own queries
+    (``stacked[k] >= 0``), from ``(K, Q)`` results over the union ``queries``."""
+    out = []
+    for k in range(len(stacked)):
+        own = stacked[k][queries] >= 0
+        out.append(BestMatches(queries[own], match[k][own], dist[k][own], yaw[k][own],
+                               seconds, evaluations, source))
+    return out
+
+
 def _check_exclude(exclude: int) -> None:
     if exclude < 1:
         raise LirisError(option("exclude", exclude), "exclusion window must be at least 1 frame")
@@ -190,7 +248,7 @@ def protocol1_block(descriptor: Descriptor, descriptors, q: np.ndarray, lim: np.
     """
     database = descriptors[: int(lim.max()) + 1]
     d, y = _pairwise(descriptor, _rows(descriptors, q), database)
-    return d.size, *_best_in_block(d, y, lim)
+    return d.size, *best_in_block(d, y, lim)
 
 
 def best_matches(
@@ -200,7 +258,7 @@ def best_matches(
     pair_budget: int = DEFAULT_PAIR_BUDGET,
     progress: Callable[[int], object] | None = None,
     executor=None,
-) -> BestMatches:
+):
     """Exhaustive protocol 1 search of each query over its database ``j <= limits[i]``.
 
     ``exclude`` is E (the standard ``j <= i - E``) or the ``(N,)`` per-query
@@ -208,33 +266,40 @@ def best_matches(
     database its last query may see; the few pairs beyond each query's own
     limit are masked out. ``executor`` (:mod:`lidar_iris_eval.executor`), when
     given, runs the blocks (e.g. as Dask tasks); the results do not change.
+
+    ``exclude`` may also be ``(K, N)`` limits (``--convention-band``): one pass
+    over the union of their queries and databases, and a list of ``K``
+    :class:`BestMatches`, each equal to a search under its own limits.
     """
     n = len(descriptors)
-    limits = query_limits(n, exclude)
-    queries = np.flatnonzero(limits >= 0)
-    match = np.empty(len(queries), dtype=np.int64)
-    dist = np.empty(len(queries))
-    yaw = np.empty(len(queries))
+    stacked, several = stack_limits(n, exclude)
+    union = stacked.max(axis=0)
+    queries = np.flatnonzero(union >= 0)
+    k_lim = len(stacked)
+    match = np.empty((k_lim, len(queries)), dtype=np.int64)
+    dist = np.empty((k_lim, len(queries)))
+    yaw = np.empty((k_lim, len(queries)))
     evaluations = 0
-    blocks = query_row_blocks(limits, pair_budget)
+    blocks = query_row_blocks(union, pair_budget)
     distributed = executor is not None and executor.distributes_blocks
     if not distributed:
         warm_up(descriptor, descriptors)  # compilation is not matching cost
     start = time.perf_counter()
     offsets = np.cumsum([0] + [len(q) for q in blocks])
-    tasks = [(q, limits[q]) for q in blocks]
+    tasks = [(q, stacked[:, q] if several else stacked[0, q]) for q in blocks]
     if distributed:
         done = executor.imap(protocol1_block, tasks, shared=(descriptor, descriptors))
     else:
         done = ((i, protocol1_block(descriptor, descriptors, *t)) for i, t in enumerate(tasks))
     for index, (size, m, d, y) in done:
         k = slice(offsets[index], offsets[index + 1])
-        match[k], dist[k], yaw[k] = m, d, y
+        match[:, k], dist[:, k], yaw[:, k] = m, d, y
         evaluations += int(size)
         if progress is not None:
             progress(len(blocks[index]))
     seconds = time.perf_counter() - start
-    return BestMatches(queries, match, dist, yaw, seconds, evaluations, "exhaustive")
+    out = split_matches(stacked, queries, match, dist, yaw, seconds, evaluations, "exhaustive")
+    return out if several else out[0]
 
 
 def affinity_matrix(
@@ -248,7 +313,8 @@ def affinity_matrix(
 ) -> tuple[Affinity, BestMatches | None]:
     """The ``(N, N)`` float32 affinity and, when ``exclude`` is given, protocol 1 matches.
 
-    ``exclude`` is E or the per-query limits (:func:`query_limits`).
+    ``exclude`` is E or the per-query limits (:func:`query_limits`), or ``(K, N)``
+    limits: then a list of ``K`` :class:`BestMatches` (see :func:`best_matches`).
 
     A symmetric descriptor is evaluated on the lower triangle only (each block
     of rows ``[a, b)`` against columns ``[0, b)``) and mirrored, so each
@@ -262,12 +328,14 @@ def affinity_matrix(
     so memory stays O(N) plus one block.
     """
     n = len(descriptors)
-    limits = query_limits(n, exclude) if exclude is not None else None
+    stacked, several = stack_limits(n, exclude) if exclude is not None else (None, False)
+    limits = stacked.max(axis=0) if stacked is not None else None
     symmetric = bool(descriptor.symmetric)
     matrix = np.empty((n, n), dtype=np.float32) if store else None
-    p1_match = np.full(n, -1, dtype=np.int64)
-    p1_dist = np.full(n, np.inf)
-    p1_yaw = np.full(n, np.nan)
+    k_lim = 0 if stacked is None else len(stacked)
+    p1_match = np.full((k_lim, n), -1, dtype=np.int64)
+    p1_dist = np.full((k_lim, n), np.inf)
+    p1_yaw = np.full((k_lim, n), np.nan)
     evaluations = 0
     sink_s = 0.0
     # a symmetric pass holds at most b columns per row; size blocks for the worst case
@@ -289,8 +357,9 @@ def affinity_matrix(
         if limits is not None:
             rows = np.flatnonzero(limits[a:b] >= 0)
             if len(rows):
-                p1_match[a + rows], p1_dist[a + rows], p1_yaw[a + rows] = _best_in_block(
-                    d[rows], y[rows], limits[a + rows])
+                p1_match[:, a + rows], p1_dist[:, a + rows], p1_yaw[:, a + rows] = \
+                    _best_under_limits(d[rows], y[rows], stacked[:, a + rows]) if several \
+                    else _best_in_block(d[rows], y[rows], stacked[0, a + rows])
         if progress is not None:
             progress(b - a)
     if matrix is not None:
@@ -300,9 +369,9 @@ def affinity_matrix(
     if limits is None:
         return affinity, None
     queries = np.flatnonzero(limits >= 0)
-    matches = BestMatches(queries, p1_match[queries], p1_dist[queries], p1_yaw[queries],
-                          seconds, evaluations, "affinity")
-    return affinity, matches
+    matches = split_matches(stacked, queries, p1_match[:, queries], p1_dist[:, queries],
+                            p1_yaw[:, queries], seconds, evaluations, "affinity")
+    return affinity, matches if several else matches[0]
 
 
 def _fill_symmetric(matrix: np.ndarray, d: np.ndarray, a: int, b: int) -> None:

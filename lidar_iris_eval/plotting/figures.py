@@ -11,13 +11,14 @@ write them under stable names.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from lidar_iris_eval.errors import LirisError, warn
+from lidar_iris_eval.errors import LirisError, LirisWarning, warn
 from lidar_iris_eval.plotting import style
 from lidar_iris_eval.plotting.affinity import affinity_figure
 from lidar_iris_eval.plotting.pr import pr_figure, protocol_title, run_curves
@@ -36,6 +37,8 @@ FILE_STEMS = {
     "iris_alignment": "iris_alignment",
     "recall": "recall_at_n",
     "pr_cross": "pr_cross_session",
+    "loops": "loops_trajectory",
+    "posegraph": "posegraph_ape",
 }
 IRIS = "lidar-iris"
 
@@ -102,6 +105,30 @@ def build_trajectory(run: Run) -> Figure:
         results[name] = outcomes(matches, tau)
     return trajectory_figure(run.positions(), ground_plane_axes(settings.pose_frame),
                              run.ground_truth().revisit, results, frame=settings.pose_frame)
+
+
+def build_loops(run: Run) -> tuple[Figure | None, Figure | None]:
+    """A ``--loops`` run's loops on the trajectory, and its pose-graph APE bars (or None)."""
+    from lidar_iris_eval.evaluation.ground_truth import ground_plane_axes
+    from lidar_iris_eval.plotting.loops import loops_figure, posegraph_figure
+
+    tables = run.loop_tables("loops")
+    if not tables:
+        return None, None
+    settings = run.gt_settings()
+    trajectory = loops_figure(run.positions(), ground_plane_axes(settings.pose_frame),
+                              run.ground_truth().revisit, tables, frame=settings.pose_frame)
+    graphs = run.loop_tables("posegraph")
+    for name, table in graphs.items():  # label each false loop by its frames
+        loops = tables.get(name)
+        if loops is not None and "loop" in table.columns:
+            k = table["loop"].to_numpy(dtype=np.int64)
+            ok = (k >= 0) & (k < len(loops))
+            table = table.copy()
+            table["query"] = np.where(ok, loops["query"].to_numpy()[np.clip(k, 0, None)], -1)
+            table["match"] = np.where(ok, loops["match"].to_numpy()[np.clip(k, 0, None)], -1)
+            graphs[name] = table
+    return trajectory, (posegraph_figure(graphs) if graphs else None)
 
 
 def build_timing(run: Run) -> Figure | None:
@@ -189,8 +216,11 @@ def build_iris(run: Run, frame: int | None = None) -> tuple[Figure | None, Figur
 
 # ---- drivers ----------------------------------------------------------------------------
 def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = "png",
-             frame: int | None = None) -> list[Path]:
+             frame: int | None = None, failures: int | None = None) -> list[Path]:
     """Write every figure of one run; returns the files written.
+
+    ``failures=N`` adds the failure atlas (:mod:`~lidar_iris_eval.plotting.atlas`):
+    ``failures_<descriptor>`` per protocol 1 method.
 
     ``out_dir`` defaults to ``<run_dir>/figures``; figures already there are
     replaced (they are derived outputs). In any other folder, replacing an
@@ -203,6 +233,8 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
     if frame is not None and not 0 <= frame < run.n_frames:
         raise LirisError(f"--frame {frame}",
                          f"frame index out of range (run has {run.n_frames} frames)")
+    if failures is not None and failures < 1:
+        raise LirisError(f"--failures {failures}", "must be at least 1")
     default_out = out_dir is None
     out = Path(run.path / "figures" if default_out else out_dir)
     from lidar_iris_eval.plotting.recall import build_recall
@@ -217,13 +249,19 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, fmt: str = 
         "pr2": build_pr(run, 2),
         "affinity": build_affinity(run),
         "trajectory": build_trajectory(run),
-        "timing": build_timing(run),
+        # a --loops run extracted and matched nothing: no timing to show
+        "timing": None if run.loop_tables("loops") else build_timing(run),
     }
     # only for a run that scored LiDAR Iris: a GOSMatch or ESM run's figures must not
     # show another method's internals as if they were its own
     if IRIS in run.descriptors():
         figures["iris_frame"], figures["iris_alignment"] = build_iris(run, frame)
     figures["recall"] = build_recall(run)  # with --ranking
+    figures["loops"], figures["posegraph"] = build_loops(run)  # a --loops run
+    if failures is not None:
+        from lidar_iris_eval.plotting.atlas import build_failures
+
+        figures.update(build_failures(run, failures, _open_run_sequence))
     return _write(figures, out, fmt, warn_overwrite=not default_out)
 
 
@@ -249,7 +287,7 @@ def plot_compare(run_dirs: Sequence[str | Path], out_dir: str | Path | None = No
 
 
 def figure_path(out_dir: Path, key: str, fmt: str) -> Path:
-    return Path(out_dir) / f"{FILE_STEMS[key]}.{fmt}"
+    return Path(out_dir) / f"{FILE_STEMS.get(key, key)}.{fmt}"
 
 
 # ---- helpers --------------------------------------------------------------------------
@@ -310,6 +348,10 @@ def _open_run_sequence(run: Run):
     return sequence
 
 
+#: the run's sequence for figures that need the scans (the failure atlas of ``liris report``)
+open_run_sequence = _open_run_sequence
+
+
 def _recorded_reader_options(run: Run) -> dict:
     """The reader options config.yaml records, typed again (old runs stored strings)."""
     recorded = (run.config.get("sequence") or {}).get("reader_options") or {}
@@ -336,7 +378,12 @@ def _iris_descriptor(run: Run):
 
     preset, params = run.descriptor_params(IRIS)
     try:
-        return get_descriptor(IRIS, preset=preset, **params)
+        # config.yaml records every parameter, set by the user or not; a figure
+        # must not warn that shift_window is ignored when nobody set it (the
+        # run's own eval warned already when somebody did)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r".*ignored: ", category=LirisWarning)
+            return get_descriptor(IRIS, preset=preset, **params)
     except LirisError as err:
         warn(run.path / "config.yaml", f"{err.problem}; using the default LiDAR Iris preset")
         return get_descriptor(IRIS)

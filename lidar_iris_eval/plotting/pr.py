@@ -203,6 +203,10 @@ def run_curves(run, protocol: int, prefix: str = "", linestyle: str = "-") -> li
         band = seed_band(run.path / f"protocol{protocol}" / name)
         if band is not None:
             shown += f", band: {band[3]} seeds"
+        elif protocol == 1:  # --convention-band: the spread over convention presets
+            band = seed_band(run.path / "protocol1" / name, pattern="pr_convention-*.csv")
+            if band is not None:
+                shown += f", band: {band[3]} conventions"
         curves.append(PRCurve(
             key=f"{prefix}: {name}" if prefix else name,
             label=legend_label(shown, ap, f1_max),
@@ -232,12 +236,13 @@ def interpolated_precision(recall: np.ndarray, precision: np.ndarray,
     return out
 
 
-def seed_band(folder, points: int = 201):
+def seed_band(folder, points: int = 201, pattern: str = "pr_seed*.csv"):
     """``(grid, low, high, n_seeds)`` from ``pr_seed*.csv`` in ``folder`` (``--seeds``), or
-    None with fewer than two seeds."""
+    None with fewer than two seeds. ``pattern="pr_convention-*.csv"``: the curves of
+    ``--convention-band``'s presets instead."""
     import pandas as pd
 
-    files = sorted(folder.glob("pr_seed*.csv")) if folder.is_dir() else []
+    files = sorted(folder.glob(pattern)) if folder.is_dir() else []
     if len(files) < 2:
         return None
     grid = np.linspace(0.0, 1.0, points)

@@ -23,11 +23,16 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError, os_error
 from lidar_iris_eval.ownership import check_replaceable, replace_folder, write_manifest
+from lidar_iris_eval.plotting.pr import seed_band
 from lidar_iris_eval.runs import Run, conventions_lines, load_run
 from lidar_iris_eval.runs.schema import result_warnings
-from lidar_iris_eval.runs.table import RANKING_COLUMNS, TABLE_COLUMNS, cell, table_row
+from lidar_iris_eval.runs.table import RANKING_COLUMNS, TABLE_COLUMNS, band_rows, cell, table_row
 
 PLOTLY_JS = "plotly.min.js"
+#: failure atlas cases per method and kind in a report (``liris report --failures``)
+DEFAULT_FAILURES = 3
+#: resolution of the embedded failure atlas figures
+ATLAS_DPI = 90
 INSTALL_HINT = "the HTML report needs plotly: pip install 'lidar_iris_eval[report]'"
 #: largest side of an embedded affinity image, in pixels (tiles keep the minimum distance)
 MAX_AFFINITY_PX = 600
@@ -44,8 +49,11 @@ def _plotly():
 
 
 def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = None,
-                 overwrite: bool = False, max_affinity_px: int = MAX_AFFINITY_PX) -> Path:
+                 overwrite: bool = False, max_affinity_px: int = MAX_AFFINITY_PX,
+                 failures: int = DEFAULT_FAILURES) -> Path:
     """Write ``index.html`` and ``plotly.min.js`` for the run in ``run_dir``.
+
+    ``failures``: cases per method and kind in the failure atlas section (0: none).
 
     ``out`` defaults to ``<run>/report``. An existing report folder is only
     replaced with ``overwrite``. The folder is assembled aside and moved into
@@ -66,7 +74,7 @@ def build_report(run_dir: str | os.PathLike, out: str | os.PathLike | None = Non
     try:
         try:
             (tmp / PLOTLY_JS).write_text(plotly.offline.get_plotlyjs(), encoding="utf-8")
-            (tmp / "index.html").write_text(render_page(run, go, max_affinity_px),
+            (tmp / "index.html").write_text(render_page(run, go, max_affinity_px, failures),
                                             encoding="utf-8")
         except OSError as err:  # name the report, not the folder it was assembled in
             raise os_error(err, out / "index.html", "cannot write the report") from None
@@ -92,8 +100,9 @@ def warnings_list(run: Run) -> str:
             f"<ul>{items}</ul></div>")
 
 
-def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
-    """The page's HTML text."""
+def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX,
+                failures: int = 0) -> str:
+    """The page's HTML text (``failures`` > 0: with the failure atlas section)."""
     sequence = run.config.get("sequence") or run.metrics.get("sequence") or {}
     title = f"liris report: {run.name}"
     version = html.escape(str(run.metrics.get("version")))
@@ -107,6 +116,12 @@ def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
             f"<li>{html.escape(line)}</li>" for line in conventions_lines(run.conventions,
                                                                           run.config)) + "</ul>",
     ]
+    if band_rows(run.rows):
+        sections += ["<h2>Convention band (protocol 1)</h2>",
+                     "<p>Each metric under the run's own convention, and in brackets its "
+                     "minimum and maximum over the convention presets that apply to the run "
+                     "(one matching pass; the PR figure shades the presets' spread).</p>",
+                     band_table(run)]
     for protocol in (1, 2):
         if run.descriptors(protocol):
             sections += [f"<h2>PR curves, protocol {protocol}</h2>",
@@ -121,11 +136,27 @@ def render_page(run: Run, go, max_affinity_px: int = MAX_AFFINITY_PX) -> str:
         sections += ["<h2>Trajectory: protocol 1 at each method's max-F1 threshold</h2>",
                      "<p>Click a legend entry to show or hide it; one method is shown at first."
                      "</p>", _div(trajectory_figure(run, go), "trajectory")]
+    if run.loop_tables("loops"):
+        sections += ["<h2>Loops of each --loops file</h2>",
+                     "<p>Each loop is a segment between its two poses: green true, red false "
+                     "(ground-truth distance under / not under the radius), grey dashed not "
+                     "scored. The bars are the APE RMSE (after SE(3) alignment) of the pose "
+                     "graph optimised with no loops, its true loops and all its loops, and "
+                     "what each false loop adds alone (docs/loops.md).</p>",
+                     loop_images(run)]
     if run.descriptors(2):
         sections += ["<h2>Affinity matrices (protocol 2)</h2>",
                      "<p>Similarity = 1 &minus; min-max normalised distance (bright = similar);"
                      " tiles show their most similar pair.</p>", affinity_images(run,
                                                                                  max_affinity_px)]
+    if failures > 0 and run.descriptors(1):
+        sections += ["<h2>Failure atlas (protocol 1)</h2>",
+                     f"<p>Per method, the {failures} most confident false positives (lowest "
+                     f"descriptor distance) and the {failures} revisit queries missed worst at "
+                     "the max-F1 threshold (highest distance): both scans' bird's-eye views at "
+                     "the method's and at the ground-truth pose, the method's own "
+                     "representation where it is cheap, and the pair on the trajectory.</p>",
+                     failure_atlas(run, failures)]
     body = "\n".join(sections)
     return f"""<!DOCTYPE html>
 <html lang="en">
@@ -141,6 +172,8 @@ td.num {{ text-align: right; font-variant-numeric: tabular-nums; }}
 .meta {{ color: #666; }}
 figure {{ display: inline-block; margin: 0.5em; text-align: center; }}
 figure img {{ width: 320px; image-rendering: pixelated; border: 1px solid #ccc; }}
+figure.atlas img {{ width: 100%; image-rendering: auto; }}
+figure.atlas {{ display: block; }}
 </style>
 </head>
 <body>
@@ -173,6 +206,44 @@ def metrics_table(run: Run) -> str:
             f"<tbody>{''.join(body)}</tbody></table>")
 
 
+def failure_atlas(run: Run, n: int) -> str:
+    """The failure atlas figures as embedded PNGs (a note when the scans are not there)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lidar_iris_eval.plotting.atlas import build_failures
+    from lidar_iris_eval.plotting.figures import open_run_sequence
+
+    figures = build_failures(run, n, open_run_sequence)
+    if not figures:
+        return ("<div id='failure-atlas'><p>Not drawn: the run's scans could not be opened "
+                "(see the warning printed).</p></div>")
+    parts = []
+    for key, fig in figures.items():
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format="png", dpi=ATLAS_DPI)
+        plt.close(fig)
+        data = base64.b64encode(buffer.getvalue()).decode("ascii")
+        name = html.escape(key.removeprefix("failures_"))
+        parts.append(f"<figure class='atlas'><img alt='failure atlas {name}' "
+                     f"src='data:image/png;base64,{data}'><figcaption>{name}</figcaption>"
+                     "</figure>")
+    return "<div id='failure-atlas'>" + "".join(parts) + "</div>"
+
+
+def band_table(run: Run) -> str:
+    """``--convention-band``: own [min–max] per metric (the cells of ``liris show``)."""
+    rows = band_rows(run.rows)
+    columns = list(rows[0])
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(cell(r.get(c)))}</td>" for c in columns)
+                   + "</tr>" for r in rows)
+    return (f"<table id='convention-band'><thead><tr>{head}</tr></thead>"
+            f"<tbody>{body}</tbody></table>")
+
+
 def recall_figure(run: Run, go):
     """Recall@N against N (1..25) of every row with ranking metrics."""
     fig = go.Figure()
@@ -194,6 +265,14 @@ def pr_figure(run: Run, protocol: int, go):
     for k, name in enumerate(run.descriptors(protocol)):
         row = run.row(protocol, name)
         curve = run.pr(protocol, name)
+        band = seed_band(run.path / "protocol1" / name, pattern="pr_convention-*.csv") \
+            if protocol == 1 else None
+        if band is not None:  # --convention-band: the presets' spread, shaded
+            grid, low, high, count = band
+            fig.add_trace(go.Scatter(
+                x=[*grid, *grid[::-1]], y=[*high, *low[::-1]], fill="toself", mode="lines",
+                line={"width": 0}, fillcolor=COLORS[k % len(COLORS)], opacity=0.2,
+                name=f"{name}: {count} conventions", hoverinfo="skip"))
         fig.add_trace(go.Scatter(
             x=curve["recall"], y=curve["precision"], mode="lines",
             name=f"{name}/{row.get('preset')} (AP {cell(row.get('ap'))})",
@@ -263,6 +342,24 @@ def affinity_png(matrix: np.ndarray, max_px: int = MAX_AFFINITY_PX) -> bytes:
     buffer = io.BytesIO()
     plt.imsave(buffer, image, cmap="viridis", vmin=0.0, vmax=1.0, format="png")
     return buffer.getvalue()
+
+
+def loop_images(run: Run) -> str:
+    """The loops-on-trajectory and pose-graph APE figures of a --loops run, as PNG."""
+    from lidar_iris_eval.plotting.figures import build_loops
+
+    figures = []
+    for fig, caption in zip(build_loops(run), ("loops on the trajectory",
+                                               "pose-graph APE RMSE"), strict=True):
+        if fig is None:
+            continue
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format="png", dpi=110)
+        data = base64.b64encode(buffer.getvalue()).decode("ascii")
+        figures.append(f"<figure><img style='width: 640px' alt='{caption}' "
+                       f"src='data:image/png;base64,{data}'><figcaption>{caption}"
+                       f"</figcaption></figure>")
+    return "<div id='loops'>" + "".join(figures) + "</div>"
 
 
 def affinity_images(run: Run, max_px: int = MAX_AFFINITY_PX) -> str:

@@ -13,6 +13,7 @@ from lidar_iris_eval.runs.table import (
     FORMATS,
     TABLE_COLUMNS,
     conventions_lines,
+    render_band_table,
     render_table,
     table_row,
 )
@@ -23,6 +24,7 @@ __all__ = [
     "Run",
     "conventions_lines",
     "load_run",
+    "render_band_table",
     "render_table",
     "table_row",
 ]

@@ -80,3 +80,37 @@ def render_seed_table(rows: Sequence[Mapping[str, Any]], fmt: str = "table") -> 
         table.append(entry)
     return render_table(table, fmt, ["protocol", "descriptor", "seeds", "stochastic", *metrics],
                         summarize=False)
+
+
+#: (column, metrics.json key) of the table of scored loop files (``liris eval --loops``)
+LOOPS_COLUMNS = (
+    ("descriptor", "descriptor"),
+    ("loops", "n_loops"),
+    ("scored", "n_loops_scored"),
+    ("tp", "loops_tp"),
+    ("fp", "loops_fp"),
+    ("precision", "loops_precision"),
+    ("recall", "loops_recall"),
+    ("coverage", "revisit_coverage"),
+    ("stretches", "n_revisit_stretches_covered"),
+    ("of", "n_revisit_stretches"),
+    ("rr", "loops_rr"),
+    ("ape_none_m", "posegraph_ape_none_m"),
+    ("ape_true_m", "posegraph_ape_true_m"),
+    ("ape_all_m", "posegraph_ape_all_m"),
+    ("worst_false_m", "posegraph_worst_false_added_m"),
+)
+_LOOPS_ALWAYS = {"descriptor", "loops", "scored", "tp", "fp", "precision", "recall",
+                 "coverage"}
+
+
+def render_loops_table(rows: Sequence[Mapping[str, Any]], fmt: str = "table") -> str:
+    """The loop files' TP/FP, precision, coverage and pose-graph APE (docs/loops.md), or
+    ``""`` when no row is a scored loop file."""
+    table = [{col: r.get(key) for col, key in LOOPS_COLUMNS} for r in rows
+             if "loops_tp" in r]
+    if not table:
+        return ""
+    columns = [c for c, _ in LOOPS_COLUMNS
+               if c in _LOOPS_ALWAYS or any(r.get(c) is not None for r in table)]
+    return render_table(table, fmt, columns, summarize=False)

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.errors import LirisError, warn
 from lidar_iris_eval.runs.schema import check_metrics
 
 #: columns a reader of each table relies on (more may be present)
@@ -255,6 +255,18 @@ class Run:
     def has(self, relative: str) -> bool:
         return (self.path / relative).is_file()
 
+    def loop_tables(self, kind: str = "loops") -> dict[str, pd.DataFrame]:
+        """``{loop source: loops/<name>/<kind>.csv}`` (``kind`` ``loops`` or ``posegraph``)
+        of a ``liris eval --loops`` run, for the sources that have the file."""
+        columns = {"loops": ("query", "match", "status"),
+                   "posegraph": ("graph", "ape_rmse_m", "added_m")}[kind]
+        out = {}
+        for name in self.descriptors(1):
+            table = self._csv(f"loops/{name}/{kind}.csv", columns, required=False)
+            if table is not None:
+                out[name] = table
+        return out
+
     def _csv(self, relative: str, columns: tuple[str, ...] = (),
              required: bool = True) -> pd.DataFrame | None:
         if relative not in self._cache:
@@ -327,6 +339,11 @@ def load_run(path: str | Path) -> Run:
             raise LirisError(config_path, f"not valid YAML ({_one_line(err)})") from None
         if not isinstance(config, dict):
             raise LirisError(config_path, "expected a mapping of settings")
+    else:
+        # every liris writer leaves one; without it the run shows with liris's
+        # default conventions and cannot be replayed, which must not pass unsaid
+        warn(config_path, "missing: the run's settings are unknown, shown with liris's "
+                          "default conventions, and it cannot be replayed with --config")
     return Run(path=folder, config=config, metrics=metrics)
 
 

@@ -109,15 +109,48 @@ def _yaml_value(value: Any) -> str:
         "\n...").strip()
 
 
+def _poses_only(sequence: dict[str, Any]) -> bool:
+    """True for a ``liris eval --poses P --loops F`` run: its "sequence" is the pose file."""
+    poses = (sequence.get("reader_options") or {}).get("poses")
+    return poses is not None and Path(poses).resolve() == Path(sequence["path"]).resolve()
+
+
+#: loop-source parameter (config.yaml) -> ``liris eval`` parameter name
+_LOOP_PARAMS = {"index_base": "loops_index_base", "gap": "loops_gap",
+                "keyframe_times": "loops_times", "keyframe_map": "loops_map",
+                "time_tolerance_s": "loops_time_tolerance",
+                "coverage_tolerance_frames": "loops_coverage_tolerance",
+                "posegraph_kernel": "posegraph_kernel", "odometry": "loops_odometry"}
+
+
+def _loop_sources(sources: list[dict[str, Any]]) -> dict[str, Any]:
+    """The ``--loops`` options that rerun a loops run (docs/loops.md)."""
+    if not sources:
+        return {}
+    params = [d.get("params") or {} for d in sources]
+    out: dict[str, Any] = {"loop_paths": [p["path"] for p in params]}
+    formats = {p.get("format") for p in params}
+    if len(formats) == 1 and None not in formats:
+        out["loops_format"] = formats.pop()
+    for key, name in _LOOP_PARAMS.items():  # one value for every file (as on the command line)
+        value = params[0].get(key)
+        if value not in (None, ""):
+            out[name] = value
+    return out
+
+
 def config_defaults(config: dict[str, Any]) -> dict[str, Any]:
     """``liris eval`` option values (by parameter name) that rerun ``config``."""
     out: dict[str, Any] = {}
     sequence = config.get("sequence") or {}
-    if sequence.get("path"):
+    if sequence.get("path") and not _poses_only(sequence):
         out["sequence"] = sequence["path"]
     if config.get("protocols"):
         out["protocols"] = [str(p) for p in config["protocols"]]
-    builtin = [d for d in config.get("descriptors") or [] if d.get("preset") != "external"]
+    builtin = [d for d in config.get("descriptors") or []
+               if d.get("preset") not in ("external", "loops")]
+    out.update(_loop_sources([d for d in config.get("descriptors") or []
+                              if d.get("preset") == "loops"]))
     external = [d for d in config.get("descriptors") or [] if d.get("preset") == "external"]
     if builtin:
         out["descriptor_text"] = ",".join(f"{d['name']}:{d['preset']}" for d in builtin)

@@ -14,6 +14,10 @@ Rules:
 * a metric (:data:`NUMBER_KEYS`, or a key with a prefix of
   :data:`NUMBER_PREFIXES`) is a finite number or null (undefined, never 0);
 * ``conventions`` and ``sequence`` are mappings when present;
+* a result's ``convention_band`` (``liris eval --convention-band``), when
+  present, is a mapping whose ``metrics`` map each metric to ``own``, ``min``
+  and ``max`` numbers (or null, in the metric's range) and whose ``values``
+  map each preset to its metrics; runs without it read as before;
 * a result's ``warnings`` (the warnings that qualify its numbers, e.g. a
   degenerate descriptor, see :mod:`lidar_iris_eval.descriptors.sanity`) is a
   list of text when present; :func:`result_warnings` lists them for ``show``,
@@ -109,9 +113,31 @@ def check_metrics(metrics: Any, path: str | Path) -> None:
                 if problem is not None:
                     raise LirisError(path, f"{where}.{key}: {problem} (not written by liris "
                                            "eval, or edited)")
+        if "convention_band" in row:
+            _check_band(row["convention_band"], path, f"{where}.convention_band")
     for key in ("conventions", "sequence"):
         if key in metrics and not isinstance(metrics[key], dict):
             raise LirisError(path, f"{key}: expected a mapping, got {metrics[key]!r}")
+
+
+def _check_band(band: Any, path: str | Path, where: str) -> None:
+    """The ``convention_band`` entry of a result row (see the module docstring)."""
+    if not isinstance(band, dict) or not isinstance(band.get("metrics"), dict) \
+            or not isinstance(band.get("values", {}), dict):
+        raise LirisError(path, f"{where}: expected a mapping with 'metrics' and 'values'")
+    checks = [(f"{where}.metrics.{metric}.{part}", metric, entry.get(part) if
+               isinstance(entry, dict) else entry)
+              for metric, entry in band["metrics"].items() for part in ("own", "min", "max")]
+    checks += [(f"{where}.values.{preset}.{metric}", metric, value)
+               for preset, values in band.get("values", {}).items()
+               for metric, value in (values.items() if isinstance(values, dict)
+                                     else [("?", values)])]
+    for at, metric, value in checks:
+        if not _number_or_null(value):
+            raise LirisError(path, f"{at}: expected a number or null, got {value!r}")
+        problem = range_problem(metric, value)
+        if problem is not None:
+            raise LirisError(path, f"{at}: {problem} (not written by liris eval, or edited)")
 
 
 def result_warnings(rows: list[dict[str, Any]]) -> list[str]:

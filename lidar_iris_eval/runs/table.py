@@ -175,3 +175,42 @@ def conventions_lines(conventions: Mapping[str, Any], config: Mapping[str, Any] 
         lines.append(f"database session: {database.get('name')} ({database.get('n_frames')} "
                      f"frames, fingerprint {database.get('fingerprint')})")
     return lines
+
+
+#: metrics shown by :func:`render_band_table` (``--convention-band``)
+BAND_COLUMNS = ("ap", "f1_max", "r100p", "ep")
+
+
+def band_cell(entry: Mapping[str, Any] | None) -> str:
+    """``own [min–max]`` of one metric's band entry (``n/a`` parts when undefined)."""
+    if not entry:
+        return "n/a"
+    return f"{cell(entry.get('own'))} [{cell(entry.get('min'))}–{cell(entry.get('max'))}]"
+
+
+def band_rows(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """One row per protocol 1 result with a ``convention_band``: each metric as
+    :func:`band_cell`, the number of presets and the extremes' presets of AP."""
+    out = []
+    for row in rows:
+        band = row.get("convention_band")
+        if not isinstance(band, Mapping):
+            continue
+        metrics = band.get("metrics") or {}
+        ap = metrics.get("ap") or {}
+        out.append({"descriptor": row.get("descriptor"), "convention": band.get("own_convention"),
+                    **{k: band_cell(metrics.get(k)) for k in BAND_COLUMNS},
+                    "presets": len(band.get("presets") or []),
+                    "ap_min_at": ap.get("min_preset"), "ap_max_at": ap.get("max_preset")})
+    return out
+
+
+def render_band_table(rows: Sequence[Mapping[str, Any]], fmt: str = "table") -> str:
+    """The convention band of a run's protocol 1 rows ('' when none has one)."""
+    table = band_rows(rows)
+    if not table:
+        return ""
+    columns = ("descriptor", "convention", *BAND_COLUMNS, "presets", "ap_min_at", "ap_max_at")
+    text = render_table(table, fmt, columns, summarize=False)
+    return text if fmt in ("csv", "latex") else \
+        "convention band, protocol 1: own [min–max over presets]\n" + text

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from lidar_iris_eval.errors import LirisError, read_text
 from lidar_iris_eval.io.poses import check_finite, is_number
 from lidar_iris_eval.io.scans import Scan
-from lidar_iris_eval.io.sequence import Sequence, hash_file_samples
+from lidar_iris_eval.io.sequence import Sequence, hash_file_samples, scan_entries
 from lidar_iris_eval.io.timematch import match_poses
 
 #: options every dataset reader accepts (besides poses=, which names its own pose file)
@@ -263,7 +263,7 @@ def list_files(folder: Path, suffix: str, what: str) -> list[Path]:
     """Files ending in ``suffix`` in ``folder`` (natural order of numeric stems)."""
     if not folder.is_dir():
         raise LirisError(folder, f"{what} folder not found")
-    files = [p for p in folder.iterdir() if p.name.endswith(suffix) and p.is_file()]
+    files = scan_entries(folder, lambda p: p.name.endswith(suffix))
     if not files:
         raise LirisError(folder, f"no {what} files (*{suffix})")
     return sorted(files, key=_natural_key)

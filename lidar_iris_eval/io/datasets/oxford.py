@@ -129,6 +129,7 @@ def extrinsic(run: Path, name: str) -> tuple[np.ndarray, str]:
                 values = []
             if len(values) != 6:
                 raise LirisError(path, "malformed extrinsics: expected x y z roll pitch yaw")
+            check_finite(values, str(path), "extrinsics")
             return _xyzrpy(values), str(path)
     return _xyzrpy(SDK_EXTRINSICS[name]), f"SDK {name}.txt"
 
