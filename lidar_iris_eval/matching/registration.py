@@ -347,7 +347,7 @@ def _process_cache(sequence, settings: RegistrationSettings) -> ScanCache:
 
 
 def _chunks(order: np.ndarray, n_workers: int) -> list[np.ndarray]:
-    """Cut the rows (sorted by query scan) into tasks of at most :data:`CHUNK_LOOPS`."""
+    """Cut the sorted rows into tasks of at most :data:`CHUNK_LOOPS`."""
     size = int(np.clip(np.ceil(len(order) / max(1, 4 * n_workers)), 1, CHUNK_LOOPS))
     return [order[i:i + size] for i in range(0, len(order), size)]
 
@@ -358,8 +358,8 @@ def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray 
                 cache: ScanCache | None = None, executor=None) -> list[RefinedPoses]:
     """:func:`refine_pairs` for several passes ``(query, match, initial)`` at once.
 
-    The rows of every pass with ``match >= 0`` are sorted by query scan and
-    cut into tasks; with an ``executor`` of several processes
+    The rows of every pass with ``match >= 0`` are sorted by query scan (by
+    match scan on workers) and cut into tasks; with an ``executor`` of several processes
     (:meth:`~lidar_iris_eval.executor.SerialExecutor.imap_pool`) the tasks run
     in parallel, each worker preparing a scan once and reusing it for every
     loop it registers with that scan. Every registration is a pure function
@@ -409,7 +409,11 @@ def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray 
     todo = np.array(sorted(rows_of), dtype=np.int64)
     workers = 1 if executor is None else int(getattr(executor, "workers", 1))
     parallel = executor is not None and not executor.serial and workers > 1
-    order = todo[np.lexsort((match[todo], query[todo]))]
+    # serial: by query (the planned cache then prepares each scan once); workers: by match,
+    # so the loops of one match scan sit in one task (small-mixed, 370 loops, 2 workers with
+    # an LRU of 64: 522 preparations for 400 scans, against 602 by query)
+    keys = (query[todo], match[todo]) if parallel else (match[todo], query[todo])
+    order = todo[np.lexsort(keys)]
     chunks = _chunks(order, workers if parallel else 1)
     prepare_s, n_prepared = 0.0, 0
     cache = cache if cache is not None else ScanCache(sequence, settings)
