@@ -127,6 +127,8 @@ def main() -> None:
     ap.add_argument("--gt-pose", choices=("dataset", "refined"), default="dataset")
     ap.add_argument("--before-ref", default="main", help="git ref of the 'before' code")
     ap.add_argument("--skip-before", action="store_true")
+    ap.add_argument("--prepare-only", action="store_true",
+                    help="only count the scans prepared (serial, --workers); no alignment")
     ap.add_argument("--repeat", type=int, default=1,
                     help="rounds of the ways, interleaved (median wall per way)")
     ap.add_argument("--cache-dir", default=None)
@@ -145,6 +147,14 @@ def main() -> None:
     distinct = set()
     for q, m, _ in passes:
         distinct |= set(q[m >= 0].tolist()) | set(m[m >= 0].tolist())
+    if args.prepare_only:  # count preparations: every alignment replaced by a failed one
+        from lidar_iris_eval.matching import registration as reg
+
+        reg.register = lambda target, source, initial, settings: reg.failed()
+        counts = {f"workers_{w}": run_now(seq, passes, w)[1] for w in (1, args.workers)}
+        print(json.dumps({"loops": n_loops, "distinct_scans": len(distinct),
+                          "scans_prepared": counts}, indent=1))
+        return
     report = {"sequence": args.sequence, "descriptor": args.descriptor, "loops": n_loops,
               "workers": args.workers, "load_before": os.getloadavg(), "ways": []}
     results = {}
