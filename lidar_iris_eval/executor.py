@@ -53,20 +53,40 @@ class SerialExecutor:
         for index, task in enumerate(tasks):
             yield index, fn(*shared, *task)
 
+
     def describe(self) -> dict[str, Any]:
         return {"scheduler": self.scheduler, "workers": self.workers}
+
+
+def stop_pool(pool) -> None:
+    """Stop a ``ProcessPoolExecutor`` now: queued tasks cancelled, running ones killed.
+
+    ``shutdown(wait=True)`` would wait for every running task (a compiled
+    call holding its worker for seconds), so a Ctrl-C would not stop the run
+    for that long; the workers ignore SIGINT (their parent reports it).
+    """
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.terminate()
+    for process in processes:
+        with contextlib.suppress(Exception):
+            process.join(timeout=1.0)
 
 
 @dataclass(frozen=True)
 class ProcessExecutor(SerialExecutor):
     """A local process pool of ``workers``: ``imap`` runs its tasks there (extraction
-    chunks). Block passes stay in this process (``distributes_blocks`` is False: they
-    share one large descriptor array).
+    chunks, registrations). Block passes stay in this process (``distributes_blocks`` is
+    False: they share one large descriptor array).
 
     ``shared`` is handed to each worker once (the pool's initializer), so a task
     ships only its own small arguments; a worker exits with the process that
     made the pool. Errors cross the process boundary as raised
     (:class:`~lidar_iris_eval.errors.LirisError` pickles with both its parts).
+    An error or a Ctrl-C stops the pool at once (:func:`stop_pool`) instead of
+    waiting for the tasks that are running.
     """
 
     workers: int = 2
@@ -79,17 +99,20 @@ class ProcessExecutor(SerialExecutor):
             return
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)),
-                                 initializer=_init_pool_worker,
-                                 initargs=(fn, tuple(shared), os.getpid())) as pool:
+        pool = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)),
+                                   initializer=_init_pool_worker,
+                                   initargs=(fn, tuple(shared), os.getpid()))
+        finished = False
+        try:
             futures = {pool.submit(_pool_task, *task): index for index, task in enumerate(tasks)}
-            try:
-                for future in as_completed(futures):
-                    yield futures[future], future.result()
-            except BaseException:
-                for future in futures:
-                    future.cancel()
-                raise
+            for future in as_completed(futures):
+                yield futures[future], future.result()
+            finished = True
+        finally:
+            if finished:
+                pool.shutdown(wait=True)
+            else:  # an error, Ctrl-C or the consumer stopped: do not wait for running tasks
+                stop_pool(pool)
 
 
 #: per-process state of pool workers: the task function and the shared arguments
@@ -142,6 +165,7 @@ class DaskExecutor:
         finally:
             for future in futures:
                 future.cancel()
+
 
     def describe(self) -> dict[str, Any]:
         """For config files: which scheduler, how many workers."""

@@ -24,8 +24,9 @@ wall time: it is mostly waiting for the disk.
 
 Each scan goes through :meth:`Descriptor.describe`: point descriptors get the
 bare points (``seq[i]``, as always), methods that read labels, intensity or
-objects get ``seq.scan(i)``. Their inputs are checked against the sequence
-before any work (:meth:`Descriptor.check_inputs`).
+objects get the scan with what their ``inputs`` declare (``Sequence.read``: a
+label file is read only for a method that declares ``labels``). Their inputs
+are checked against the sequence before any work (:meth:`Descriptor.check_inputs`).
 """
 
 from __future__ import annotations
@@ -49,6 +50,8 @@ from lidar_iris_eval.config import params_dict
 from lidar_iris_eval.descriptors.base import Descriptor, reads_local_maps
 from lidar_iris_eval.descriptors.features import RaggedFeatures
 from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.io.scans import Scan
+from lidar_iris_eval.io.sequence import read_scan
 
 DEFAULT_CHUNK_SIZE = 50
 
@@ -239,8 +242,8 @@ def extract_many(
     (thread CPU time of its ``compute`` alone); ``read_s`` is the shared read,
     the same value in every descriptor read together. Descriptors found
     complete in the cache are loaded and read nothing. Point descriptors get
-    ``seq[i]`` and scan descriptors ``seq.scan(i)``; a run mixing both kinds
-    reads each scan once per kind. Returns one :class:`DescriptorDB` per
+    ``seq[i]`` and scan descriptors the scan with their declared inputs; a run
+    mixing both kinds reads each scan once. Returns one :class:`DescriptorDB` per
     descriptor, in order; the results equal :func:`extract` of each.
     """
     if executor is not None:
@@ -459,6 +462,8 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
     extract_s = np.empty((n, b - a))
     read_s = np.empty(b - a)
     wants = [d.wants_scan() for d in descriptors]
+    # read only what the methods declare (labels only for a method that uses them)
+    inputs = frozenset().union(*(d.inputs for d, w in zip(descriptors, wants, strict=True) if w))
     i, name = a, descriptors[0].name if descriptors else "descriptor"
     try:
         if len(descriptors) == 1 and reads_local_maps(descriptors[0]):
@@ -468,8 +473,13 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
                                              tick, _warm_up)
         for k, i in enumerate(range(a, b) if not outputs[0] else ()):
             t0 = time.perf_counter()
-            scan = seq.scan(i) if any(wants) else None
-            points = seq[i] if not all(wants) else None
+            scan = read_scan(seq, i, inputs) if any(wants) else None
+            if all(wants):
+                points = None
+            elif isinstance(scan, Scan):  # one read serves both kinds of method
+                points = scan.points
+            else:
+                points = seq[i]
             t1 = time.perf_counter()
             for j, descriptor in enumerate(descriptors):
                 name = descriptor.name

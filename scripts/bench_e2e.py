@@ -5,14 +5,19 @@ Usage::
 
     nice -n 19 python scripts/bench_e2e.py --world /work/k00 --json-out e2e.json
     python scripts/bench_e2e.py --world /tmp/w --frames 40 --azimuth-steps 128   # a tiny world
+    python scripts/bench_e2e.py --world /tmp/t --world-preset tiny-mixed --azimuth-steps 128
 
 Steps:
 
 1. ``liris simulate WORLD --trajectory POSES --calib CALIB --azimuth-steps 2048``
    (KITTI 00: 4541 scans, ~12 GB, ~14 min on an idle 2-core machine), skipped
    when ``WORLD/manifest.json`` already describes the same simulation.
-2. ``liris eval WORLD --protocol 1 --protocol 2 -d DESCRIPTORS --workers 2`` with a
-   fresh, temporary descriptor cache and run folder, as a child process.
+2. ``liris eval WORLD --protocol 1 --protocol 2 -d DESCRIPTORS --workers 2 --refine gicp``
+   with a fresh, temporary descriptor cache and run folder, as a child process. The
+   default ``-d`` is all seven methods: GOSMatch on the simulated labels, ESM and
+   MapClosures on local maps from the ground-truth poses (``--odometry gt``).
+   ``--world-preset`` simulates a built-in world (``liris simulate --world``) instead of
+   the KITTI-00 trajectory; ``--refine none`` leaves registration out.
 
 Recorded as JSON (``--json-out``, else stdout):
 
@@ -21,10 +26,11 @@ Recorded as JSON (``--json-out``, else stdout):
 * ``peak_rss_bytes``: the largest single process (``ru_maxrss`` of the children)
   and the largest sum over the whole process tree (sampled every 0.1 s from /proc);
 * ``stages``: wall time of each progress stage as the child reports it on stderr
-  (extraction per descriptor, matching per descriptor; protocols 1 and 2 share
-  one matching pass, see ``match_source``), and from the run folder the summed
-  per-scan read and extraction times per descriptor (``timing/<name>.csv``) and
-  the matching time per descriptor and protocol (``metrics.json``);
+  (extraction per descriptor, matching per descriptor, registration per descriptor;
+  protocols 1 and 2 share one matching pass, see ``match_source``), and from the run
+  folder the summed per-scan read and extraction times per descriptor
+  (``timing/<name>.csv``), the matching time per descriptor and protocol and the
+  registration's ms per loop and per prepared scan (``metrics.json``);
 * ``metrics``: each result's metrics without its timings, and their SHA-256, so
   two runs (or two versions of the code) can be checked for identical metrics
   (``--expect FILE`` compares with an earlier JSON and exits 1 on a difference).
@@ -51,11 +57,16 @@ from pathlib import Path
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 DEFAULT_POSES = SHARED / "data" / "kitti" / "poses" / "00.txt"
 DEFAULT_CALIB = SHARED / "data" / "kitti" / "calib" / "00.txt"
-DEFAULT_DESCRIPTORS = "lidar-iris,scan-context,m2dp,esf"
+#: all seven methods (GOSMatch on the simulated labels, ESM and MapClosures on local maps
+#: from the ground-truth poses: ``--odometry gt``, the default)
+DEFAULT_DESCRIPTORS = "lidar-iris,scan-context,m2dp,esf,gosmatch,esm,mapclosures"
 #: result fields that are timings or run facts, not metrics
 TIMING_FIELDS = {"extract_ms_per_scan", "match_ms_per_query", "match_us_per_pair",
-                 "match_source"}
-_BAR = re.compile(r"^\s*([A-Za-z0-9+_:.,-]+(?: matching)?):\s")
+                 "match_source", "registration_ms_per_loop", "registration_prepare_ms_per_scan",
+                 "odometry_ms_per_scan"}
+#: any other key naming a time (``*_ms``, ``*_ms_per_*``, ``*_s``) is a timing too
+_TIMING_KEY = re.compile(r"(_ms|_us|_s|_seconds)(_per_[a-z]+)?$")
+_BAR = re.compile(r"^\s*([A-Za-z0-9+_:.,-]+(?: matching| registration)?):\s")
 
 
 def liris_command() -> list[str]:
@@ -78,9 +89,11 @@ def simulate_if_needed(world: Path, args) -> dict:
         return {"reused": True, "seconds": 0.0, "frames": cfg.get("frames")}
     cmd = [*liris_command(), "simulate", str(world), "--azimuth-steps", str(args.azimuth_steps),
            "-q"]
-    if args.trajectory is not None:
+    if args.world_preset is not None:
+        cmd += ["--world", args.world_preset]
+    elif args.trajectory is not None:
         cmd += ["--trajectory", str(args.trajectory)]
-    if args.calib is not None:
+    if args.calib is not None and args.world_preset is None:
         cmd += ["--calib", str(args.calib)]
     if args.frames is not None:
         cmd += ["--frames", str(args.frames)]
@@ -188,6 +201,11 @@ def run_folder_stages(run: Path) -> dict:
             proto["match_us_per_pair"] = r["match_us_per_pair"]
             proto["distance_evaluations"] = r.get("n_distance_evaluations")
             proto["match_s"] = r["match_us_per_pair"] * (r.get("n_distance_evaluations") or 0) / 1e6
+        if r.get("registration_ms_per_loop") is not None:  # --refine: its own stage
+            entry["registration"] = {
+                "ms_per_loop": r["registration_ms_per_loop"],
+                "prepare_ms_per_scan": r.get("registration_prepare_ms_per_scan"),
+                "loops_registered": r.get("n_registered")}
         entry[f"protocol{r['protocol']}"] = proto
     return out
 
@@ -195,7 +213,8 @@ def run_folder_stages(run: Path) -> dict:
 def metrics_only(run: Path) -> list[dict]:
     """Each result of ``metrics.json`` without its timing fields, in file order."""
     results = json.loads((run / "metrics.json").read_text())["results"]
-    return [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in results]
+    return [{k: v for k, v in r.items() if k not in TIMING_FIELDS and not _TIMING_KEY.search(k)}
+            for r in results]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -206,11 +225,15 @@ def main(argv: list[str] | None = None) -> int:
                         default=DEFAULT_POSES if DEFAULT_POSES.is_file() else None)
     parser.add_argument("--calib", type=Path,
                         default=DEFAULT_CALIB if DEFAULT_CALIB.is_file() else None)
+    parser.add_argument("--world-preset", default=None,
+                        help="a built-in world of liris simulate (instead of --trajectory)")
     parser.add_argument("--azimuth-steps", type=int, default=2048)
     parser.add_argument("--frames", type=int, default=None,
                         help="scans to simulate (default: every pose of the trajectory)")
     parser.add_argument("-d", "--descriptors", default=DEFAULT_DESCRIPTORS)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--refine", choices=("gicp", "icp", "none"), default="gicp",
+                        help="register every protocol 1 match (timed as its own stage)")
     parser.add_argument("--json-out", type=Path, default=None)
     parser.add_argument("--keep", type=Path, default=None,
                         help="keep the run folder here (default: a temporary one, removed)")
@@ -225,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
         cmd = [*liris_command(), "eval", str(args.world), "--protocol", "1", "--protocol", "2",
                "-d", args.descriptors, "--workers", str(args.workers),
                "--cache-dir", str(tmp / "cache"), "--out", str(run), "--overwrite"]
+        if args.refine != "none":
+            cmd += ["--refine", args.refine]
         env = dict(os.environ)
         env.pop("LIRIS_CACHE_DIR", None)
         load_start = list(os.getloadavg())

@@ -198,3 +198,115 @@ def test_relative_pose_convention_of_registration(sim):
     assert np.allclose(gt, invert_pose(sim.poses[i]) @ sim.poses[j])
     r = register_points(sim[i], sim[j], np.eye(4))
     assert translation_error_m(r.pose[None], gt[None])[0] < 0.05
+
+
+def _pairs_with_repeats():
+    """Loops reusing scans (scan 0 matched by three queries, scan 5 as query and match)."""
+    q = np.array([5, 7, 9, 11, 10, 8])
+    m = np.array([0, 0, 0, 5, 5, -1])
+    return q, m
+
+
+def test_parallel_refinement_equals_fresh_per_pair_registration(sim):
+    """Prepared once and shared, in one process or two: every pose is the pose of a fresh
+    registration of that pair alone (single-threaded small_gicp is deterministic)."""
+    from lidar_iris_eval.executor import ProcessExecutor, SerialExecutor
+
+    q, m = _pairs_with_repeats()
+    gt = relative_ground_truth(sim.poses, q, np.maximum(m, 0))
+    start = np.stack([yaw_pose(float(yaw_deg_of(g))) for g in gt])
+    fresh = [register_points(sim[qi], sim[mi], s) if mi >= 0 else None
+             for qi, mi, s in zip(q, m, start, strict=True)]
+    ticks = []
+    serial = refine_pairs(sim, q, m, start, executor=SerialExecutor(), progress=ticks.append)
+    parallel = refine_pairs(sim, q, m, start, executor=ProcessExecutor(workers=2))
+    assert sum(ticks) == len(q)
+    for r in (serial, parallel):
+        assert np.isnan(r.pose[5]).all() and not r.registered[5]
+        for k, f in enumerate(fresh):
+            if f is not None:
+                assert np.array_equal(r.pose[k], f.pose), k
+                assert r.inlier_ratio[k] == f.inlier_ratio and r.rmse_m[k] == f.rmse_m
+    assert np.array_equal(serial.pose, parallel.pose, equal_nan=True)
+
+
+def test_two_passes_prepare_each_scan_once(sim):
+    """Refinement and ground-truth passes in one call: each of the 6 distinct scans once,
+    even with room for 3 prepared scans (an LRU of 3 would prepare scan 5 twice)."""
+    from lidar_iris_eval.matching.registration import ScanCache, refine_many
+
+    q, m = _pairs_with_repeats()
+    settings = RegistrationSettings()
+    cache = ScanCache(sim, settings, size=3)
+    gt = relative_ground_truth(sim.poses, q, np.maximum(m, 0))
+    one, two = refine_many(sim, [(q, m, None), (q, m, gt)], settings, cache=cache)
+    assert cache.n_prepared == len(set(q[m >= 0]) | set(m[m >= 0]))
+    assert one.registered.sum() == two.registered.sum() == 5
+    assert len(cache._items) == 0  # every scan let go after its last loop
+
+
+def test_pool_stops_at_once_when_the_consumer_stops():
+    """A pool left early (an error, Ctrl-C) kills its running tasks instead of waiting."""
+    import time
+
+    from lidar_iris_eval.executor import ProcessExecutor
+
+    results = ProcessExecutor(workers=2).imap(time.sleep, [(0.0,), (30.0,), (30.0,)])
+    next(results)
+    started = time.perf_counter()
+    results.close()
+    assert time.perf_counter() - started < 5.0
+
+
+def test_ctrl_c_during_parallel_registration_is_one_line_and_stops_the_workers(tmp_path):
+    """SIGINT while two workers register: exit 130, one line, no worker left behind."""
+    import subprocess
+
+    from test_faults_mech import assert_interrupted, interrupt
+
+    from lidar_iris_eval.simulate import simulate_sequence
+
+    simulate_sequence(tmp_path / "seq", preset="tiny-mixed", azimuth_steps=512)
+    code, err = interrupt(["eval", tmp_path / "seq", "-d", "scan-context", "--protocol", "1",
+                           "--refine", "gicp", "--gt-pose", "refined", "--workers", "2",
+                           "--out", "O"], tmp_path, "registration")
+    assert_interrupted(code, err)
+    assert not (tmp_path / "O").exists()
+    left = subprocess.run(["pgrep", "-f", str(tmp_path / "seq")], capture_output=True, text=True)
+    assert left.stdout.split() == [], left.stdout
+
+
+def test_methods_share_registrations_and_prepared_scans(sim):
+    """Two methods' loops in one call: equal (pair, start) rows registered once, each scan
+    prepared once for both, results those of each method alone."""
+    from types import SimpleNamespace
+
+    from lidar_iris_eval.evaluation.loop_poses import LoopPoseSettings, refine_loops_many
+    from lidar_iris_eval.matching.registration import ScanCache
+
+    q, m = _pairs_with_repeats()
+    matches = SimpleNamespace(query=q, match=m, distance=np.zeros(len(q)))
+    no_pose = SimpleNamespace(matches=matches, pose=None, is_true=m >= 0)  # M2DP-like
+    other = SimpleNamespace(matches=matches, pose=None, is_true=m >= 0)  # ESF-like
+    settings = LoopPoseSettings(refine="gicp")
+    cache = ScanCache(sim, settings.registration)
+    calls = []
+    import lidar_iris_eval.matching.registration as reg
+
+    real = reg.register
+
+    def counting(*args):
+        calls.append(1)
+        return real(*args)
+
+    reg.register = counting
+    try:
+        both = refine_loops_many([no_pose, other, None], sim, settings, cache=cache)
+        n_both = len(calls)
+        alone = refine_loops_many([no_pose], sim, settings)[0]
+    finally:
+        reg.register = real
+    assert both[2] is None
+    assert n_both == 5 and cache.n_prepared == 6
+    for loops in both[:2]:
+        assert np.array_equal(loops.refined.pose, alone.refined.pose, equal_nan=True)

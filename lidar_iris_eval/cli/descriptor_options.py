@@ -138,7 +138,7 @@ def descriptor_options(func):
         click.option("--cache-dir", type=click.Path(path_type=Path), default=None,
                      help="Descriptor cache folder [default: $LIRIS_CACHE_DIR or ./.liris-cache]."),
         click.option("--workers", type=int, default=1, show_default=True,
-                     help="Processes for extraction."),
+                     help="Processes for extraction and registration (--refine)."),
         click.option("--quiet", "-q", is_flag=True, help="No progress bars."),
         verify_scans_option,
     ]

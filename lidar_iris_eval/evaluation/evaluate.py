@@ -307,14 +307,18 @@ def evaluate(
     plan = None
     if convention_band:
         plan = _band_plan(sequence, settings, pose_frame, protocols, loop_settings)
+    matched = [_evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
+                             settings, progress, times, executor, plan,
+                             getattr(sequence, "times", None))
+               for desc, db in zip(descriptors, dbs, strict=True)]
+    # every method's registrations in one call: scans prepared once for the run
+    loops = lp.register_all([r.protocol1 for r in matched], sequence, loop_settings,
+                            ",".join(d.name for d in descriptors), progress, executor)
     results = []
-    for desc, db in zip(descriptors, dbs, strict=True):
-        result = _evaluate_one(desc, db, positions, forward, sequence.poses, protocols,
-                               settings, progress, times, executor, plan,
-                               getattr(sequence, "times", None))
+    for desc, db, result, loop in zip(descriptors, dbs, matched, loops, strict=True):
         if result.protocol1 is not None:
             result = _with_loop_poses(result, sequence, positions, forward, settings,
-                                      loop_settings, progress)
+                                      loop_settings, progress, executor, loop)
         if ranking and result.protocol1 is not None:
             result.rows[0].update(ranking_row(desc, db, positions, settings, times))
         if result.band is not None:
@@ -329,12 +333,13 @@ def evaluate(
 
 
 def _with_loop_poses(result: DescriptorResult, sequence, positions, forward, settings,
-                     loop_settings: lp.LoopPoseSettings, progress) -> DescriptorResult:
+                     loop_settings: lp.LoopPoseSettings, progress,
+                     executor=None, loops: lp.LoopPoses | None = None) -> DescriptorResult:
     """Registration recall, and with ``--refine``/``--gt-pose refined`` the registrations
     (issue 23): protocol 1 rescored under the acceptance rule, its row extended."""
     p1, loops = lp.apply(result.protocol1, sequence, positions, forward, loop_settings,
                          desc_name=result.descriptor.name, progress=progress,
-                         run_settings=settings)
+                         run_settings=settings, executor=executor, loops=loops)
     rows = result_rows(result.descriptor, result.db, p1, result.protocol2, settings) \
         if p1 is not result.protocol1 else [dict(r) for r in result.rows]
     rows[0].update(lp.loop_pose_metrics(p1, loops, loop_settings,

@@ -41,7 +41,7 @@ from lidar_iris_eval.matching.registration import (
     RegistrationSettings,
     ScanCache,
     has_points,
-    refine_pairs,
+    refine_many,
 )
 
 GT_POSES = ("dataset", "refined")
@@ -205,31 +205,62 @@ class LoopPoses:
 
 def refine_loops(p1, sequence, settings: LoopPoseSettings,
                  progress: Callable[[int], object] | None = None,
-                 cache: ScanCache | None = None) -> LoopPoses:
-    """Register ``p1``'s matches and/or its true matches' ground truth (see module doc)."""
+                 cache: ScanCache | None = None, executor=None) -> LoopPoses:
+    """Register ``p1``'s matches and/or its true matches' ground truth (see module doc).
+
+    Both registrations run as one :func:`~lidar_iris_eval.matching.registration.refine_many`
+    call (a scan is prepared once for both), in parallel on ``executor``'s processes.
+    """
+    return refine_loops_many([p1], sequence, settings, progress, cache, executor)[0]
+
+
+def refine_loops_many(p1s: list, sequence, settings: LoopPoseSettings,
+                      progress: Callable[[int], object] | None = None,
+                      cache: ScanCache | None = None, executor=None) -> list[LoopPoses | None]:
+    """:func:`refine_loops` of several methods' protocol 1 results in one registration call.
+
+    Every method's loops share the prepared scans (each prepared once for the
+    run, not once per method), and a pair registered from the same start by two
+    methods (M2DP and ESF: both from the identity) is registered once. None
+    in ``p1s`` gives None. ``n_scans_prepared`` and ``prepare_s`` are the run's.
+    """
     if not has_points(sequence):
         raise LirisError(option("refine", settings.refine or settings.gt_pose), NO_POINTS)
     cache = cache if cache is not None else ScanCache(sequence, settings.registration)
-    m = p1.matches
-    gt = relative_ground_truth(sequence.poses, m.query, m.match)
-    refined = rre = rte = accepted = None
-    if settings.refine is not None:
-        refined = refine_pairs(sequence, m.query, m.match, p1.pose, settings.registration,
-                               progress, cache)
-        rre, rte = pose_errors(refined.pose, gt)
-        accepted = np.ones(len(m.query), dtype=bool)
-        if settings.min_inlier_ratio is not None:
-            accepted &= np.nan_to_num(refined.inlier_ratio, nan=-1.0) >= settings.min_inlier_ratio
-        if settings.max_rmse_m is not None:
-            accepted &= np.nan_to_num(refined.rmse_m, nan=np.inf) <= settings.max_rmse_m
-    gt_refined = None
-    if settings.gt_pose == "refined":
-        true = np.asarray(p1.is_true, dtype=bool)
-        match = np.where(true, m.match, -1)
-        gt_refined = refine_pairs(sequence, m.query, match, gt, settings.registration,
-                                  progress, cache)
-    return LoopPoses(settings, refined, rre, rte, accepted, gt, gt_refined,
-                     cache.n_prepared, np.asarray(m.distance).copy(), cache.prepare_s)
+    passes, plans = [], []
+    for p1 in p1s:
+        if p1 is None:
+            plans.append(None)
+            continue
+        m = p1.matches
+        gt = relative_ground_truth(sequence.poses, m.query, m.match)
+        plans.append(gt)
+        if settings.refine is not None:
+            passes.append((m.query, m.match, p1.pose))
+        if settings.gt_pose == "refined":
+            true = np.asarray(p1.is_true, dtype=bool)
+            passes.append((m.query, np.where(true, m.match, -1), gt))
+    results = refine_many(sequence, passes, settings.registration, progress, cache, executor)
+    out: list[LoopPoses | None] = []
+    for p1, gt in zip(p1s, plans, strict=True):
+        if p1 is None:
+            out.append(None)
+            continue
+        m = p1.matches
+        refined = rre = rte = accepted = None
+        if settings.refine is not None:
+            refined = results.pop(0)
+            rre, rte = pose_errors(refined.pose, gt)
+            accepted = np.ones(len(m.query), dtype=bool)
+            if settings.min_inlier_ratio is not None:
+                accepted &= (np.nan_to_num(refined.inlier_ratio, nan=-1.0)
+                             >= settings.min_inlier_ratio)
+            if settings.max_rmse_m is not None:
+                accepted &= np.nan_to_num(refined.rmse_m, nan=np.inf) <= settings.max_rmse_m
+        gt_refined = results.pop(0) if settings.gt_pose == "refined" else None
+        out.append(LoopPoses(settings, refined, rre, rte, accepted, gt, gt_refined,
+                             cache.n_prepared, np.asarray(m.distance).copy(), cache.prepare_s))
+    return out
 
 
 def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
@@ -255,25 +286,35 @@ def rescore_with_acceptance(p1, loops: LoopPoses, positions: np.ndarray,
 
 def apply(p1, sequence, positions: np.ndarray, forward: np.ndarray | None,
           settings: LoopPoseSettings, desc_name: str = "", progress: bool = False,
-          run_settings=None):
+          run_settings=None, executor=None, loops: LoopPoses | None = None):
     """``(protocol 1 result, LoopPoses or None)`` after the registrations ``settings`` ask for.
 
     Without registration, or on a sequence without point clouds (n/a), ``p1``
-    is returned as is with None.
+    is returned as is with None. ``loops``: registrations already made
+    (:func:`register_all`), used instead of registering here.
     """
     if not settings.registers or not has_points(sequence):
         return p1, None
+    if loops is None:
+        loops = register_all([p1], sequence, settings, desc_name, progress, executor)[0]
+    return rescore_with_acceptance(p1, loops, positions, forward, sequence.poses,
+                                   run_settings), loops
+
+
+def register_all(p1s: list, sequence, settings: LoopPoseSettings, desc_name: str = "",
+                 progress: bool = False, executor=None) -> list[LoopPoses | None]:
+    """:func:`refine_loops_many` behind one progress bar (None where nothing is registered)."""
+    if not settings.registers or not has_points(sequence) or all(p is None for p in p1s):
+        return [None] * len(p1s)
     import sys
 
     from tqdm import tqdm
 
-    rows = len(p1.matches.query)  # one tick per row and pass
+    rows = sum(len(p1.matches.query) for p1 in p1s if p1 is not None)  # a tick per row, pass
     total = rows * ((settings.refine is not None) + (settings.gt_pose == "refined"))
     with tqdm(total=total, desc=f"{desc_name} registration", unit="loop", file=sys.stderr,
               disable=not progress, leave=False) as bar:
-        loops = refine_loops(p1, sequence, settings, bar.update)
-    return rescore_with_acceptance(p1, loops, positions, forward, sequence.poses,
-                                   run_settings), loops
+        return refine_loops_many(p1s, sequence, settings, bar.update, executor=executor)
 
 
 def _summary(rre, rte, mask, prefix: str, settings: LoopPoseSettings) -> dict:

@@ -23,9 +23,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 VEHICLE_IDS: tuple[int, ...] = (10, 13, 16, 18, 20)
@@ -60,15 +59,48 @@ def euclidean_clusters(points: np.ndarray, tolerance: float, min_points: int) ->
         return []
     tree = cKDTree(points)
     pairs = tree.query_pairs(tolerance, output_type="ndarray")
-    graph = coo_matrix(
-        (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n)
-    )
-    n_comp, comp = connected_components(graph, directed=False)
+    comp = _components(n, np.ascontiguousarray(pairs, dtype=np.int64))
+    n_comp = int(comp.max()) + 1
     sizes = np.bincount(comp, minlength=n_comp)
     keep = np.flatnonzero(sizes >= max(int(min_points), 1))
     order = np.argsort(comp, kind="stable")
     starts = np.concatenate([[0], np.cumsum(sizes)])
     return [order[starts[c]:starts[c + 1]] for c in keep]
+
+
+@nb.njit(cache=True, nogil=True)
+def _components(n: int, pairs: np.ndarray) -> np.ndarray:
+    """Connected components of the graph of edges ``pairs``, numbered as SciPy's
+    ``connected_components`` numbers them (in order of each component's smallest node).
+
+    Union-find; replaces building a sparse matrix per class, whose conversions
+    took much of the clustering's time (scripts/bench_gosmatch_front.py)."""
+    parent = np.arange(n)
+    for k in range(len(pairs)):
+        a, b = pairs[k, 0], pairs[k, 1]
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        while parent[b] != b:
+            parent[b] = parent[parent[b]]
+            b = parent[b]
+        if a != b:
+            if a < b:
+                parent[b] = a
+            else:
+                parent[a] = b
+    label = np.full(n, -1, dtype=np.int64)
+    comp = np.empty(n, dtype=np.int64)
+    count = 0
+    for i in range(n):
+        r = i
+        while parent[r] != r:
+            r = parent[r]
+        if label[r] < 0:
+            label[r] = count
+            count += 1
+        comp[i] = label[r]
+    return comp
 
 
 def objects_from_labels(
