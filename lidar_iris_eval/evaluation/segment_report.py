@@ -19,6 +19,9 @@ with the sequence's poses:
   of its true target (the target segment with the nearest world centroid)
   among all target segments by squared-L2 embedding distance; the share
   within ``knn`` (25) is what the consistency search can use;
+* **neighbours against the target map**: the same rank for every frame
+  ``i >= W`` against the target map of frames ``< i - W + 1`` (the
+  place it has just left; on a sequence without revisits the only rank there is);
 * **localisation**: what ESM's matcher does on each loop query (localised,
   within ``radius``, best consistent set).
 
@@ -80,14 +83,11 @@ def _median(values) -> float | None:
     return float(np.median(values)) if values else None
 
 
-def revisit_report(esm, db, poses: np.ndarray, exclude: int, radius: float, match: float,
-                   knn: int) -> dict:
-    """Per loop query: segments, repeated segments, ranks of the true targets, localisation."""
+def _target_rows(esm, db, queries, match: float) -> list[dict]:
+    """Per query frame: its segments, those repeated in the target map it is matched
+    against (frames ``< i - W + 1``) and the embedding rank of each one's true target."""
     n = len(db)
-    pairs = positive_pairs(poses[:, :3, 3], radius)
-    later = pairs[:, 1][pairs[:, 1] - pairs[:, 0] >= exclude] if len(pairs) else []
-    queries = np.unique(later).astype(int)
-    rows, ranks = [], []
+    rows = []
     for i in queries:
         cut = min(int(i) - esm.window + 1, n)
         if cut <= 0:
@@ -107,26 +107,50 @@ def revisit_report(esm, db, poses: np.ndarray, exclude: int, radius: float, matc
                 d2 = (eq**2).sum(1)[:, None] + (et**2).sum(1)[None, :] - 2 * eq @ et.T
                 true = d2[np.arange(len(ok)), nn[ok]]
                 row["ranks"] = [int(x) for x in 1 + (d2 < true[:, None]).sum(axis=1)]
-                ranks.extend(row["ranks"])
-        loc = esm.localisation(db, int(i), int(i) - exclude + 1)
-        row["inliers"] = int(loc.inliers)  # the best consistent set when rejected
-        row["frame"] = int(loc.frame)
-        row["match_dist_m"] = (float(np.linalg.norm(poses[loc.frame, :3, 3] - poses[i, :3, 3]))
-                               if loc.frame >= 0 else None)
         rows.append(row)
+    return rows
+
+
+def _summary(rows: list[dict], knn: int) -> dict:
     seg = sum(r["segments"] for r in rows)
     rep = sum(r["repeated"] for r in rows)
-    ranks_a = np.asarray(ranks, dtype=np.int64)
+    ranks = np.asarray([x for r in rows for x in r["ranks"]], dtype=np.int64)
     return {
-        "loop_queries": len(rows),
+        "queries": len(rows),
         "query_segments": int(seg),
         "repeated": int(rep),
         "repeatability": rep / seg if seg else None,
         "target_segments_median": _median(r["target"] for r in rows),
-        "rank_median": _median(ranks_a),
-        "within_knn": int((ranks_a <= knn).sum()),
+        "rank_median": _median(ranks),
+        "within_knn": int((ranks <= knn).sum()),
         "queries_with_6_within_knn": int(sum(
             sum(1 for x in r["ranks"] if x <= knn) >= 6 for r in rows)),
+    }
+
+
+def neighbour_ranks(esm, db, match: float, knn: int) -> dict:
+    """Every frame ``i >= W`` against the target map of the frames ``< i - W + 1`` (mostly
+    the place it has just left): repeatability and ranks, as at revisits."""
+    rows = _target_rows(esm, db, range(esm.window, len(db)), match)
+    return {**_summary(rows, knn), "ranks": [x for r in rows for x in r["ranks"]]}
+
+
+def revisit_report(esm, db, poses: np.ndarray, exclude: int, radius: float, match: float,
+                   knn: int) -> dict:
+    """Per loop query: segments, repeated segments, ranks of the true targets, localisation."""
+    pairs = positive_pairs(poses[:, :3, 3], radius)
+    later = pairs[:, 1][pairs[:, 1] - pairs[:, 0] >= exclude] if len(pairs) else []
+    rows = _target_rows(esm, db, np.unique(later).astype(int), match)
+    for row in rows:
+        i = row["query"]
+        loc = esm.localisation(db, i, i - exclude + 1)
+        row["inliers"] = int(loc.inliers)  # the best consistent set when rejected
+        row["frame"] = int(loc.frame)
+        row["match_dist_m"] = (float(np.linalg.norm(poses[loc.frame, :3, 3] - poses[i, :3, 3]))
+                               if loc.frame >= 0 else None)
+    return {
+        **_summary(rows, knn),
+        "loop_queries": len(rows),
         "localised": sum(r["frame"] >= 0 for r in rows),
         "localised_within_radius": sum(r["frame"] >= 0 and r["match_dist_m"] < radius
                                        for r in rows),
@@ -167,6 +191,7 @@ def segment_report(seq, esm, exclude: int, *, name: str = "", radius: float = 4.
         "segment_voxels": [int(s) for s in sizes],
         "neighbours": {"gap": gap, "repeated": nrep, "counted": ncnt,
                        "repeatability": nrep / ncnt if ncnt else None},
+        "neighbours_target": neighbour_ranks(esm, db, match, int(esm.params.knn)),
         "revisits": revisit_report(esm, db, poses, int(exclude), radius, match,
                                    int(esm.params.knn)),
     }
@@ -179,6 +204,7 @@ def _fmt(value, spec: str = ".3f") -> str:
 def report_lines(report: dict) -> list[str]:
     """A few lines of text for one report."""
     rv, nb, k = report["revisits"], report["neighbours"], report["knn"]
+    nt = report["neighbours_target"]
     pct = report["segment_voxels_pct"]
     sizes = "/".join(f"{pct[p]:.0f}" for p in ("p10", "p50", "p90")) if pct else "-"
     return [
@@ -189,6 +215,10 @@ def report_lines(report: dict) -> list[str]:
         f"p10/p50/p90 {sizes}",
         f"  repeatability at neighbours (gap {nb['gap']}): {nb['repeated']}/{nb['counted']} = "
         f"{_fmt(nb['repeatability'])}",
+        f"  neighbours against the target map: repeatability {_fmt(nt['repeatability'])}, "
+        f"rank median {_fmt(nt['rank_median'], '.0f')} of "
+        f"{_fmt(nt['target_segments_median'], '.0f')}; {nt['within_knn']}/{nt['repeated']} "
+        f"within k={k}",
         f"  repeatability at revisits: {rv['repeated']}/{rv['query_segments']} = "
         f"{_fmt(rv['repeatability'])} over {rv['loop_queries']} loop queries",
         f"  retrieval rank of the true target: median {_fmt(rv['rank_median'], '.0f')} of "

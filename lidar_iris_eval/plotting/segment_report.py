@@ -3,7 +3,8 @@
 One row per sequence, three panels: the size distribution of the segments
 (voxels, log scale), the repeatability at neighbours and at revisits (bars,
 one per configuration) and the cumulative share of repeated query segments
-whose true target ranks within k (the dashed line is the matcher's k).
+whose true target ranks within k, at revisits (solid) and against the
+target map the frame has just left (dotted); the dashed line is the matcher's k.
 """
 
 from __future__ import annotations
@@ -41,7 +42,13 @@ def build_segment_reports(reports: list[dict]):
             ranks = np.sort([x for q in r["revisits"]["per_query"] for x in q["ranks"]])
             if len(ranks):
                 share = np.arange(1, len(ranks) + 1) / r["revisits"]["query_segments"]
-                ax_rank.step(ranks, share, where="post", color=colour, label=label)
+                ax_rank.step(ranks, share, where="post", color=colour, label=f"{label} revisits")
+            nt = r.get("neighbours_target") or {}
+            ranks = np.sort(nt.get("ranks", []))
+            if len(ranks):
+                share = np.arange(1, len(ranks) + 1) / nt["query_segments"]
+                ax_rank.step(ranks, share, where="post", color=colour, ls=":",
+                             label=f"{label} neighbours")
         ax_size.set_xlabel("log10 voxels per segment")
         ax_size.set_title(seq, loc="left")
         ax_size.legend(loc="upper right")
@@ -53,6 +60,7 @@ def build_segment_reports(reports: list[dict]):
         ax_rank.set_xlabel("rank of the true target")
         ax_rank.set_ylabel("share of query segments")
         ax_rank.set_ylim(0, 1)
+        ax_rank.legend(loc="upper left")
     return fig
 
 

@@ -28,16 +28,21 @@ from lidar_iris_eval.descriptors.esm.segmentation import (
     resample,
 )
 
+#: the steepest ground slope :func:`local_ground_mask` carries from a column to the next (deg)
+GROUND_MAX_SLOPE = 15.0
+
 
 def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.ndarray:
     """True for the voxels of a local map that lie on the local ground.
 
     The map (world frame, z up) is cut into ``cell`` x ``cell`` m columns; the
-    ground height of a column is the lowest voxel of it and its 8 neighbours
-    (a 3 x 3 window, so a column that holds only a car or a wall base takes
-    the ground beside it); a voxel at most ``clearance`` m above the ground
-    height of its column is ground. It follows slopes and a tilted sensor,
-    which a height rule in the sensor frame (SegMap's z >= -1 m) does not.
+    ground height of a column is its lowest voxel, unless one of its 8
+    neighbours' lowest voxels plus the rise of a ``GROUND_MAX_SLOPE`` (15 deg)
+    slope over the distance between the two columns is lower (a column that
+    holds only a car or a wall base takes the ground beside it); a voxel at most
+    ``clearance`` m above the ground height of its column is ground. It
+    follows slopes and a tilted sensor, which a height rule in the sensor frame
+    (SegMap's z >= -1 m) does not.
     """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) == 0:
@@ -50,6 +55,7 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
     lowest = np.full(len(cells), np.inf)
     np.minimum.at(lowest, inverse, pts[:, 2])
     ground = lowest.copy()
+    rise = cell * np.tan(np.radians(GROUND_MAX_SLOPE))
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
             if di == 0 and dj == 0:
@@ -57,7 +63,8 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
             other = cells + di * width + dj
             pos = np.minimum(np.searchsorted(cells, other), len(cells) - 1)
             hit = cells[pos] == other
-            ground[hit] = np.minimum(ground[hit], lowest[pos[hit]])
+            step = rise * np.hypot(di, dj)
+            ground[hit] = np.minimum(ground[hit], lowest[pos[hit]] + step)
     return pts[:, 2] <= ground[inverse] + clearance
 
 
