@@ -27,7 +27,7 @@ def build_segment_reports(reports: list[dict]):
     for row, seq in enumerate(sequences):
         group = [r for r in reports if r["sequence"] == seq]
         ax_size, ax_rep, ax_rank = axes[row]
-        bins = np.linspace(2, 4.5, 26)
+        bins = np.linspace(1.5, 4.5, 31)
         for c, r in enumerate(group):
             colour = _COLOURS[c % len(_COLOURS)]
             label = r.get("label") or r["preset"]
