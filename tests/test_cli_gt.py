@@ -16,7 +16,7 @@ def test_help_lists_subcommands(capsys):
     assert code == 0
     listed = {line.split()[0] for line in out.split("Commands:")[1].splitlines() if line.strip()}
     assert listed == {"bench", "compare", "datasets", "eval", "extract", "gt", "plot", "report",
-                      "show", "simulate"}
+                      "segments", "show", "simulate"}
 
 
 @pytest.mark.parametrize(("exclude", "revisits"), [("300", 791), ("reference", 791), ("30", 816)])

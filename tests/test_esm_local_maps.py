@@ -117,7 +117,7 @@ def test_esm_local_maps_through_liris_eval(tmp_path, capsys):
     row = next(r for r in metrics["results"] if r["descriptor"] == "esm")
     assert row["preset"] == "local-maps"
     assert row["odometry"] == "gt" and row["local_map_window"] == 20
-    assert row["input_filter"] == "all"
+    assert row["input_filter"] == "range"  # the front end for real scans (issue 34)
     assert row["describe_rule"] == "growth" and 0.0 < row["embedding_reuse_rate"] < 1.0
     m = pd.read_csv(out / "protocol1" / "esm" / "matches.csv")
     accepted = m[np.isfinite(m["distance"])]

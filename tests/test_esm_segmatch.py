@@ -80,6 +80,8 @@ def test_the_preset_only_changes_the_descriptor():
     for name in ("source", "voxel", "radius", "min_points", "max_points", "knn", "consistency",
                  "min_consistent", "min_target", "dedup", "target_view", "frame_rule"):
         assert getattr(esm.params, name) == getattr(ref.params, name), name
+    for name in ("input_filter", "ground_cell", "ground_clearance", "cluster_voxel"):
+        assert getattr(esm.params, name) == getattr(ref.params, name), name
     assert esm.embedding_dim == 7
     with pytest.raises(LirisError, match="segment_descriptor"):
         ESMParams(segment_descriptor="fpfh")

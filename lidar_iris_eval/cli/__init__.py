@@ -82,7 +82,7 @@ def _register_commands() -> None:
     import importlib
 
     for module_name in ("gt", "simulate", "extract", "eval", "plot", "bench", "show", "compare",
-                        "report", "datasets"):
+                        "report", "datasets", "segments"):
         try:
             module = importlib.import_module(f"lidar_iris_eval.cli.{module_name}_cmd")
         except ModuleNotFoundError as err:

@@ -7,7 +7,10 @@ Two named filters:
   sensor frame (its ground rule for KITTI's 1.73 m mount), horizontal range
   ``<= 50 m``;
 * ``all``: the same height and range rules on every point (no decimation),
-  for sensors sparser than a 64-beam KITTI scan.
+  for sensors sparser than a 64-beam KITTI scan;
+* ``range``: every point within 50 m, no height rule (the ground is removed
+  later, on the local map: ESM's ``ground_cell``), for sensors whose mount
+  height and tilt the sensor-frame rule does not fit (handheld, other cars).
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ class InputFilter:
 INPUT_FILTERS: dict[str, InputFilter] = {
     "segmap": InputFilter(every=9, min_z=-1.0, max_range=50.0),
     "all": InputFilter(every=1, min_z=-1.0, max_range=50.0),
+    "range": InputFilter(every=1, min_z=-np.inf, max_range=50.0),
 }
 
 

@@ -108,6 +108,10 @@ class ESMParams:
     #: the segment descriptor: "network" (ESM's) or "segmatch" (SegMatch's seven eigenvalue
     #: features, :mod:`.segmatch`; preset ``segmatch``); the rest of the pipeline is shared
     segment_descriptor: str = "network"
+    # local-map front end (local_segments.py; docs/esm.md "Front end on real scans"):
+    ground_cell: float = 0.0  # local ground grid cell (m); 0 = only the input filter's rule
+    ground_clearance: float = 0.3  # voxels up to this height above the local ground go (m)
+    cluster_voxel: float = 0.0  # re-voxelise the map at this edge before clustering; 0 = off
 
     def __post_init__(self) -> None:
         for name, choices in (("source", _SOURCES), ("target_view", TARGET_VIEWS),
@@ -122,6 +126,12 @@ class ESMParams:
         if self.frame_rule not in ("estimate", "segments"):
             raise LirisError("esm.frame_rule", "must be 'estimate' or 'segments', "
                                                f"got {self.frame_rule!r}")
+        for name in ("ground_cell", "ground_clearance", "cluster_voxel"):
+            if not getattr(self, name) >= 0:
+                raise LirisError(f"esm.{name}", f"must be 0 or more, got {getattr(self, name)}")
+        if self.cluster_voxel and self.cluster_voxel < self.voxel:
+            raise LirisError("esm.cluster_voxel", f"must be 0 or at least esm.voxel "
+                                                  f"({self.voxel} m), got {self.cluster_voxel}")
         if not self.growth >= 0:
             raise LirisError("esm.growth", f"must be 0 or more, got {self.growth}")
         if int(self.min_consistent) < 3:
@@ -237,7 +247,8 @@ class ESM(Descriptor):
         _, arch = self.weights()
         return SegmentParams(p.max_range, p.ground_z, p.voxel, p.radius, p.min_points,
                              p.max_points, arch.n_points, p.seed, arch.norm_scale,
-                             arch.align_yaw)
+                             arch.align_yaw, p.ground_cell, p.ground_clearance,
+                             p.cluster_voxel)
 
     @property
     def weights_path(self):

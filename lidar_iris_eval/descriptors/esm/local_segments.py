@@ -28,23 +28,88 @@ from lidar_iris_eval.descriptors.esm.segmentation import (
     resample,
 )
 
+#: the steepest ground slope :func:`local_ground_mask` carries from a column to the next (deg)
+GROUND_MAX_SLOPE = 15.0
+
+
+def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.ndarray:
+    """True for the voxels of a local map that lie on the local ground.
+
+    The map (world frame, z up) is cut into ``cell`` x ``cell`` m columns; the
+    ground height of a column is its lowest voxel, unless one of its 8
+    neighbours' lowest voxels plus the rise of a ``GROUND_MAX_SLOPE`` (15 deg)
+    slope over the distance between the two columns is lower (a column that
+    holds only a car or a wall base takes the ground beside it); a voxel at most
+    ``clearance`` m above the ground height of its column is ground. It
+    follows slopes and a tilted sensor, which a height rule in the sensor frame
+    (SegMap's z >= -1 m) does not.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return np.zeros(0, bool)
+    ij = np.floor(pts[:, :2] / cell).astype(np.int64)
+    ij -= ij.min(axis=0) - 1  # a free border for the neighbours
+    width = int(ij[:, 1].max()) + 2
+    flat = ij[:, 0] * width + ij[:, 1]
+    cells, inverse = np.unique(flat, return_inverse=True)
+    lowest = np.full(len(cells), np.inf)
+    np.minimum.at(lowest, inverse, pts[:, 2])
+    ground = lowest.copy()
+    rise = cell * np.tan(np.radians(GROUND_MAX_SLOPE))
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            other = cells + di * width + dj
+            pos = np.minimum(np.searchsorted(cells, other), len(cells) - 1)
+            hit = cells[pos] == other
+            step = rise * np.hypot(di, dj)
+            ground[hit] = np.minimum(ground[hit], lowest[pos[hit]] + step)
+    return pts[:, 2] <= ground[inverse] + clearance
+
 
 def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[np.ndarray]:
     """The segments of a local map as arrays of voxel indices (rows of ``world_points``).
 
     Clusters of ``min_points`` to ``max_points`` voxels, ordered by their first
     voxel (key order, the order of :func:`segment_local_map`); each array is
-    increasing.
+    increasing. The front end's two optional steps (``SegmentParams``):
+
+    * ``ground_cell > 0``: the voxels of :func:`local_ground_mask` are removed first;
+    * ``cluster_voxel > 0`` (**density normalisation**): the remaining voxels
+      are grouped into voxels of ``cluster_voxel`` m, whose centroids are grown
+      at ``radius`` and whose count is what ``min_points`` / ``max_points``
+      bound, so a segment's size is its occupied volume at one resolution,
+      whatever the sensor's density; a segment holds every map voxel of its
+      coarse voxels.
     """
     pts = np.asarray(world_points, dtype=np.float64)
     if len(pts) == 0:
         return []
-    comp = euclidean_clusters(pts, params.radius)
-    counts = np.bincount(comp)
+    rows = np.arange(len(pts))
+    if params.ground_cell > 0:
+        rows = rows[~local_ground_mask(pts, params.ground_cell, params.ground_clearance)]
+        if len(rows) == 0:
+            return []
+    kept = pts[rows]
+    if params.cluster_voxel > 0:
+        ijk = np.floor(kept / params.cluster_voxel).astype(np.int64)
+        _, coarse, n_fine = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+        coarse = coarse.reshape(-1)
+        sums = np.zeros((len(n_fine), 3))
+        np.add.at(sums, coarse, kept)
+        comp_coarse = euclidean_clusters(sums / n_fine[:, None], params.radius)
+        counts = np.bincount(comp_coarse)
+        comp = comp_coarse[coarse]
+    else:
+        comp = euclidean_clusters(kept, params.radius)
+        counts = np.bincount(comp)
     good = np.nonzero((counts >= params.min_points) & (counts <= params.max_points))[0]
     order = np.argsort(comp, kind="stable")
-    bounds = np.concatenate([[0], np.cumsum(counts)])
-    return [order[bounds[c]:bounds[c + 1]] for c in good]
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(comp, minlength=len(counts)))])
+    members = [rows[order[bounds[c]:bounds[c + 1]]] for c in good]
+    members.sort(key=lambda m: int(m[0]))
+    return members
 
 
 def content_seed(keys: np.ndarray) -> int:

@@ -56,6 +56,10 @@ class SegmentParams:
     seed: int = 0
     norm_scale: float = 0.0  # 0: per-segment RMS radius; > 0: this constant (m)
     align_yaw: bool = False  # turn each segment to its horizontal principal axis
+    # local maps only (local_segments.py): ground by a local grid, density normalisation
+    ground_cell: float = 0.0  # 0: no ground removal here (the input filter's height rule)
+    ground_clearance: float = 0.3  # remove voxels this close above the local ground (m)
+    cluster_voxel: float = 0.0  # 0: cluster the map's voxels; > 0: re-voxelise first (m)
 
 
 @dataclass(frozen=True)
