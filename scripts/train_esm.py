@@ -211,15 +211,14 @@ def train_on_segments(args) -> None:
         raise LirisError("--source segments", "give --out (the new weights file)")
     args.pair_radius = 1.0 if args.match is None else args.match
     args.neg_distance = 5.0 if args.neg_distance is None else args.neg_distance
-    args.min_frame_gap = LM_WINDOW
     args.work.mkdir(parents=True, exist_ok=True)
     stages = set(args.stages.split(",")) - {"data"}
     start = time.time()
     train = load_segments(args.train_segments, "--train-segments")
     pairs = true_pairs(train, args.pair_radius, min_frame_gap=args.min_frame_gap)
     if len(pairs) == 0:
-        raise LirisError("--train-segments", f"no positives (views >= {LM_WINDOW} frames apart "
-                                             f"within {args.pair_radius} m)")
+        raise LirisError("--train-segments", f"no positives (views >= {args.min_frame_gap} "
+                                             f"frames apart within {args.pair_radius} m)")
     print(f"train: {len(train)} segments, {len(pairs)} true pairs", flush=True)
     from lidar_iris_eval.descriptors.esm import training
 
@@ -249,6 +248,9 @@ def main(argv=None) -> None:
     ap.add_argument("--neg-distance", type=float, default=None,
                     help="no negative whose world centroid is this close to the anchor's (m) "
                          "[5.0 for --source segments, off otherwise: classes are known]")
+    ap.add_argument("--min-frame-gap", type=int, default=LM_WINDOW,
+                    help="--source segments: positives' frames at least this far apart: the "
+                         "segment files' W (esm_segments.py --exclude) [30]")
     ap.add_argument("--checkpoint-steps", type=int, default=0,
                     help="also write state.pt every N steps (0: only by --checkpoint-every)")
     ap.add_argument("--overwrite", action="store_true",
@@ -285,6 +287,8 @@ def main(argv=None) -> None:
         return train_on_segments(args)
     args.pair_radius = 2.0 if args.match is None else args.match
     args.neg_distance = args.neg_distance or 0.0
+    if args.min_frame_gap != LM_WINDOW:
+        ap.error("--min-frame-gap is for --source segments")
     args.work.mkdir(parents=True, exist_ok=True)
     local = args.source == "local-maps"
     args.min_frame_gap = LM_WINDOW if local else 10
