@@ -121,3 +121,21 @@ def test_training_on_a_plain_sequence_checkpoints_and_resumes(segments, tmp_path
     assert again["progress"]["step"] == 6
     assert [h[0] for h in again["progress"]["hist"][:4]] == hist.tolist()
     assert np.isfinite(again["progress"]["hist"][-1][0])
+
+
+def test_state_is_written_every_n_steps(segments, tmp_path, monkeypatch):
+    pytest.importorskip("torch")
+    from lidar_iris_eval.descriptors.esm import training
+
+    saved = []
+    real = training._save
+
+    def spy(obj, path):
+        if path.name == "state.pt":
+            saved.append(obj["progress"]["step"])
+        real(obj, path)
+
+    monkeypatch.setattr(training, "_save", spy)
+    _train(segments, tmp_path / "work", tmp_path / "w.npz", 5, "--stages", "train")
+    # steps 2 and 4 (--checkpoint-steps 2), then the final state at step 5
+    assert saved == [2, 4, 5]
