@@ -9,6 +9,7 @@ without it."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -114,6 +115,14 @@ def test_training_on_a_plain_sequence_checkpoints_and_resumes(segments, tmp_path
     capsys.readouterr()
     with pytest.raises(LirisError, match="--overwrite"):
         _train(segments, work, out, 6)
+    # a resume with another starting network is refused, not mixed in
+    with np.load(INIT) as z:
+        other = {k: z[k] for k in z.files}
+    arch = json.loads(str(other["arch"]))
+    other["arch"] = np.array(json.dumps({**arch, "norm_scale": arch["norm_scale"] + 0.3}))
+    np.savez(tmp_path / "init2.npz", **other)
+    with pytest.raises(LirisError, match="same options"):
+        _train(segments, work, tmp_path / "other.npz", 6, "--init", str(tmp_path / "init2.npz"))
     # a larger budget with the same work folder continues from the saved step
     _train(segments, work, out, 6, "--overwrite")
     assert "resumed at step 4" in capsys.readouterr().out

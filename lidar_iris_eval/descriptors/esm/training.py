@@ -184,6 +184,12 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
             "dropped": False, "last_eval": 0.0, "final": False}
     if state_path.exists():
         saved = torch.load(state_path, weights_only=False)
+        if saved.get("arch", repr(net.arch)) != repr(net.arch):
+            from lidar_iris_eval.errors import LirisError
+
+            raise LirisError(state_path, "was trained with another network or segment "
+                                         "normalisation (--init, --norm-scale, --align-yaw); "
+                                         "rerun with the same options or another --work")
         net.load_state_dict(saved["net"])
         opt.load_state_dict(saved["opt"])
         prog = saved["progress"]
@@ -211,6 +217,7 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
     def save() -> None:
         prog["minutes"] = minutes()
         _save({"net": net.state_dict(), "opt": opt.state_dict(), "progress": prog,
+               "arch": repr(net.arch),
                "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()},
               state_path)
 
