@@ -20,27 +20,44 @@ last W = 30 scans, gt poses, input filter ``all``; true pairs: the same piece of
 the same object in local maps >= W frames apart) and exports
 ``esm_localmap_weights.npz`` plus ``esm_localmap_validation.json``.
 
+``--source segments`` trains on segment files of **any sequence liris reads**,
+written by ``scripts/esm_segments.py`` (the ``local-maps`` preset's local maps
+and front end on the sequence's poses): ``--train-segments`` (one or more
+files, e.g. KITTI 05 and 06), ``--valid-segments`` (the held-out figures, e.g.
+KITTI 00) and optionally ``--select-segments`` (checkpoint choice; without it
+the last step is exported). Positives: views of one segment in local maps
+>= W = 30 frames apart whose world centroids lie within ``--match`` m (1 m);
+negatives mined hard in each batch: for each anchor the nearest (squared L2
+embedding) positive of the other pairs, among those whose world centroid lies
+at least ``--neg-distance`` m (5 m) from the anchor's (a nearer one may be the
+same thing segmented differently). docs/esm.md "Training on real sequences".
+
 Resumable: each world's segments are cached in ``--work`` and training writes
 ``state.pt`` (network, optimiser, step, training minutes, random states)
-atomically every ``--checkpoint-every`` minutes; rerunning the same command
-continues where it stopped, until ``--minutes`` of training in total.
+atomically every ``--checkpoint-every`` minutes and every ``--checkpoint-steps``
+steps; rerunning the same command continues where it stopped, until
+``--steps`` / ``--minutes`` of training in total. The export never replaces an
+existing weights file unless ``--overwrite`` is given.
 
 Example (the command that made the shipped local-map weights, model card)::
 
     OMP_NUM_THREADS=1 nice -n 10 python scripts/train_esm.py --source local-maps \
         --work /tmp/esm-lm --threads 1 --data-jobs 2 --batch 32 --steps 100000 \
-        --minutes 45 --eval-every 6 --init lidar_iris_eval/descriptors/esm/esm_weights.npz
+        --minutes 45 --eval-every 6 --init lidar_iris_eval/descriptors/esm/esm_weights.npz \
+        --overwrite
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 from lidar_iris_eval.descriptors.esm.dataset import (
     SegmentSet,
+    relabel_worlds,
     simulate_local_map_segments,
     simulate_segments,
     true_pairs,
@@ -171,11 +188,73 @@ def stage_data(work: Path, which: str, jobs: int = 1, source: str = "scans") -> 
     return data
 
 
-def main() -> None:
+def load_segments(files: list[Path], flag: str) -> SegmentSet:
+    """The segment files ``files`` as one set, file ``k`` becoming world ``k``."""
+    from lidar_iris_eval.errors import LirisError
+
+    parts = []
+    for f in files:
+        try:
+            parts.append(SegmentSet.load(f))
+        except (OSError, KeyError, ValueError) as err:
+            raise LirisError(f"{flag} {f}", f"cannot read a segments file ({err})") from None
+    return relabel_worlds(parts)
+
+
+def train_on_segments(args) -> None:
+    """``--source segments``: train on files of scripts/esm_segments.py (module docstring)."""
+    from lidar_iris_eval.errors import LirisError
+
+    if not args.train_segments or not args.valid_segments:
+        raise LirisError("--source segments", "give --train-segments and --valid-segments")
+    if args.out is None:
+        raise LirisError("--source segments", "give --out (the new weights file)")
+    args.pair_radius = 1.0 if args.match is None else args.match
+    args.neg_distance = 5.0 if args.neg_distance is None else args.neg_distance
+    args.work.mkdir(parents=True, exist_ok=True)
+    stages = set(args.stages.split(",")) - {"data"}
+    start = time.time()
+    train = load_segments(args.train_segments, "--train-segments")
+    pairs = true_pairs(train, args.pair_radius, min_frame_gap=args.min_frame_gap)
+    if len(pairs) == 0:
+        raise LirisError("--train-segments", f"no positives (views >= {args.min_frame_gap} "
+                                             f"frames apart within {args.pair_radius} m)")
+    print(f"train: {len(train)} segments, {len(pairs)} true pairs", flush=True)
+    from lidar_iris_eval.descriptors.esm import training
+
+    valid = load_segments(args.valid_segments, "--valid-segments")
+    select = (load_segments(args.select_segments, "--select-segments")
+              if args.select_segments else None)
+    training.run(train, lambda: valid, args, stages, start,
+                 select_set=(lambda: select) if select is not None else None)
+    print(json.dumps({"minutes": round((time.time() - start) / 60, 1)}))
+
+
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("esm-train"))
-    ap.add_argument("--source", choices=["scans", "local-maps"], default="scans",
-                    help="segments of single scans or of run-time local maps")
+    ap.add_argument("--source", choices=["scans", "local-maps", "segments"], default="scans",
+                    help="segments of single scans or of run-time local maps of simulated "
+                         "worlds, or segment files of any sequence (scripts/esm_segments.py)")
+    ap.add_argument("--train-segments", type=Path, nargs="+", default=[],
+                    help="--source segments: the training segment files")
+    ap.add_argument("--valid-segments", type=Path, nargs="+", default=[],
+                    help="--source segments: held-out segment files the figures are reported on")
+    ap.add_argument("--select-segments", type=Path, nargs="+", default=[],
+                    help="--source segments: held-out files checkpoints are chosen on")
+    ap.add_argument("--match", type=float, default=None,
+                    help="positives' world-centroid distance (m) [1.0 for --source segments, "
+                         "2.0 otherwise]")
+    ap.add_argument("--neg-distance", type=float, default=None,
+                    help="no negative whose world centroid is this close to the anchor's (m) "
+                         "[5.0 for --source segments, off otherwise: classes are known]")
+    ap.add_argument("--min-frame-gap", type=int, default=LM_WINDOW,
+                    help="--source segments: positives' frames at least this far apart: the "
+                         "segment files' W (esm_segments.py --exclude) [30]")
+    ap.add_argument("--checkpoint-steps", type=int, default=0,
+                    help="also write state.pt every N steps (0: only by --checkpoint-every)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace an existing --out weights file (a finished model)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--data-jobs", type=int, default=1, help="worlds simulated at once")
     ap.add_argument("--steps", type=int, default=1500)
@@ -203,7 +282,13 @@ def main() -> None:
                     help="stop after this many minutes of training (summed over resumed runs)")
     ap.add_argument("--stages", default="data,train,quality,export")
     ap.add_argument("--out", type=Path, default=None, help="weights file (default: in package)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.source == "segments":
+        return train_on_segments(args)
+    args.pair_radius = 2.0 if args.match is None else args.match
+    args.neg_distance = args.neg_distance or 0.0
+    if args.min_frame_gap != LM_WINDOW:
+        ap.error("--min-frame-gap is for --source segments")
     args.work.mkdir(parents=True, exist_ok=True)
     local = args.source == "local-maps"
     args.min_frame_gap = LM_WINDOW if local else 10
@@ -234,4 +319,10 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from lidar_iris_eval.errors import LirisError
+
+    try:
+        main()
+    except LirisError as err:
+        print(f"liris: error: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(2)

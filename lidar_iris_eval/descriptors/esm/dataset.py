@@ -269,13 +269,110 @@ def _dominant(seg: np.ndarray, ids: np.ndarray, cls: np.ndarray, n: int) -> list
     return out
 
 
-def negative_candidates(coarse: np.ndarray, objects: np.ndarray) -> np.ndarray:
+def negative_candidates(coarse: np.ndarray, objects: np.ndarray, anchors_world=None,
+                        positives_world=None, worlds=None, min_distance: float = 0.0,
+                        ) -> np.ndarray:
     """``(B, B)`` True where pair ``j``'s positive may be anchor ``i``'s negative.
 
     The in-batch rule of training: another object of the same coarse class, or
-    any other object when the batch holds no other object of that class.
+    any other object when the batch holds no other object of that class. With
+    ``min_distance > 0`` (plain sequences, whose objects are centroid tracks),
+    a positive whose world centroid (``positives_world``) lies closer than
+    ``min_distance`` m to the anchor's (``anchors_world``) in the same world
+    (``worlds``) is never a negative: it may be the same thing, segmented
+    differently.
     """
     coarse, objects = np.asarray(coarse), np.asarray(objects)
     other = objects[:, None] != objects[None, :]
+    if min_distance > 0 and anchors_world is not None:
+        a, p = np.asarray(anchors_world, float), np.asarray(positives_world, float)
+        far = np.linalg.norm(a[:, None, :] - p[None, :, :], axis=2) >= min_distance
+        if worlds is not None:
+            w = np.asarray(worlds)
+            far |= w[:, None] != w[None, :]
+        other &= far
     same_cls = (coarse[:, None] == coarse[None, :]) & other
     return np.where(same_cls.any(axis=1, keepdims=True), same_cls, other)
+
+
+#: positives of a plain sequence: two views whose world centroids lie this close (m)
+#: (the segmentation report's ``--match``: the same segment, re-segmented in another map)
+SEQUENCE_MATCH = 1.0
+
+
+def sequence_local_map_segments(
+    seq, esm, every: int = 10, match: float = SEQUENCE_MATCH, max_points: int = 1024,
+    limit: int | None = None, world_index: int = 0, progress=None,
+) -> SegmentSet:
+    """The local-map segments of any sequence with poses, tagged by world centroids.
+
+    Every frame's local map is built exactly as ``liris eval -d esm`` builds it
+    (``esm``: a local-map ESM descriptor bound to its window, e.g.
+    ``get_descriptor("esm", "local-maps").bind_exclusion(30)``; its input filter,
+    voxels, crop and the sequence's poses) and every ``every``-th one is
+    segmented by the descriptor's front end (:func:`.local_segments.local_map_clusters`
+    with ``esm.segment_params``). No object ids exist, so a segment's
+    ``object_id`` is its **track**: the connected component of the graph that
+    links two segments (of any two maps) whose world centroids lie within
+    ``match`` m (1 m), numbered from 1. :func:`true_pairs` with
+    ``pair_radius = match`` and ``min_frame_gap = W`` then gives exactly the
+    pairs of views within ``match`` m in maps that share no scan. ``coarse`` is
+    0 (no classes) and ``purity`` 1. Stored points are world-frame voxel
+    centroids (at most ``max_points``, a seeded subset), as
+    :func:`simulate_local_map_segments` stores them.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from lidar_iris_eval.descriptors.esm.local_segments import local_map_clusters
+    from lidar_iris_eval.localmaps import local_maps
+
+    poses = getattr(seq, "poses", None)
+    if poses is None:
+        from lidar_iris_eval.errors import LirisError
+
+        raise LirisError(getattr(seq, "path", None), "has no poses; training needs them "
+                                                     "(give --poses)")
+    poses = np.asarray(poses, dtype=np.float64)
+    n = len(seq) if limit is None else min(int(limit), len(seq))
+    sp = esm.segment_params
+    pts, offs, frame, world = [], [0], [], []
+    for fr, _ in local_maps(lambda j: np.asarray(seq[j])[:, :3], poses,
+                            esm.local_map_settings(), 0, n):
+        i = int(fr.frame)
+        if progress is not None:
+            progress(i + 1, n)
+        if i % every:
+            continue
+        centroids = np.asarray(fr.points, dtype=np.float64)
+        sub = np.random.default_rng([int(sp.seed), i])
+        for members in local_map_clusters(centroids, sp):
+            vox = centroids[members]
+            kept = vox if len(vox) <= max_points else \
+                vox[np.sort(sub.choice(len(vox), max_points, replace=False))]
+            pts.append(kept.astype(np.float32))
+            offs.append(offs[-1] + len(kept))
+            frame.append(i)
+            world.append(vox.mean(axis=0))
+    s = len(frame)
+    world_arr = np.asarray(world, dtype=np.float64).reshape(s, 3)
+    if s:
+        pairs = cKDTree(world_arr).query_pairs(match, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(s, s))
+        _, track = connected_components(graph, directed=False)
+    else:
+        track = np.zeros(0, np.int64)
+    return SegmentSet(
+        points=np.concatenate(pts) if pts else np.zeros((0, 3), np.float32),
+        offsets=np.asarray(offs, np.int64), object_id=np.asarray(track, np.int64) + 1,
+        coarse=np.zeros(s, np.int8), frame=np.asarray(frame, np.int64), world=world_arr,
+        purity=np.ones(s), world_id=np.full(s, world_index, np.int64),
+    )
+
+
+def relabel_worlds(parts: list[SegmentSet]) -> SegmentSet:
+    """Concatenate segment sets, part ``k`` becoming world ``k`` (pairs never cross parts)."""
+    return SegmentSet.concat([SegmentSet(**{**{f: getattr(p, f) for f in p.__dataclass_fields__},
+                                            "world_id": np.full(len(p), k, np.int64)})
+                              for k, p in enumerate(parts)])

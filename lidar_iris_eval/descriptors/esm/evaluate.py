@@ -131,12 +131,15 @@ def write_golden(valid: Path, out: Path, n: int = 6, weights: str | Path | None 
     return {"golden": str(out), "weights": path.name, "segments": int(len(rows))}
 
 
-def auc_report(segments: Path, weights: list, gap: int = 30, n: int = 3000) -> dict:
+def auc_report(segments: Path, weights: list, gap: int = 30, n: int = 3000,
+               match: float = 2.0) -> dict:
     """Segment-retrieval ROC AUC, its class split and accuracy@k of each weights file.
 
     ``segments``: a :class:`~lidar_iris_eval.descriptors.esm.dataset.SegmentSet` file
     (held-out segments with object tags); ``gap``: frames two segments of a true pair
-    or a scored pair must lie apart (30 = W for local maps, 10 for single scans).
+    or a scored pair must lie apart (30 = W for local maps, 10 for single scans);
+    ``match``: a true pair's world-centroid distance (2 m for simulated object ids, 1 m for
+    the centroid tracks of ``scripts/esm_segments.py``).
     """
     from lidar_iris_eval.descriptors.esm import network
     from lidar_iris_eval.descriptors.esm.dataset import SegmentSet
@@ -148,6 +151,7 @@ def auc_report(segments: Path, weights: list, gap: int = 30, n: int = 3000) -> d
     except (OSError, KeyError, ValueError) as err:
         raise LirisError(str(segments), f"not a segment set ({err})") from None
     out = {"segments": str(segments), "n_segments": len(data), "min_frame_gap": gap,
+           "match": match,
            "weights": {}}
     for name in weights or ["esm_weights.npz"]:
         path = network.resolve_weights(name)
@@ -155,7 +159,7 @@ def auc_report(segments: Path, weights: list, gap: int = 30, n: int = 3000) -> d
             w, arch = network.load_weights(path)
         except (OSError, KeyError, ValueError) as err:
             raise LirisError(f"--weights {name}", f"cannot read ESM weights ({err})") from None
-        m = segment_retrieval(w, arch, data, gap, n)
+        m = segment_retrieval(w, arch, data, gap, n, pair_radius=match)
         out["weights"][path.name] = {
             "sha256": network.sha256_of(path)[:16],
             **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in m.items()
@@ -173,6 +177,8 @@ def main(argv=None) -> None:
     ap.add_argument("--weights", action="append", default=None,
                     help="weights file (shipped name or path); auc: repeat to compare")
     ap.add_argument("--gap", type=int, default=30, help="auc: minimum frame gap of a pair")
+    ap.add_argument("--match", type=float, default=2.0,
+                    help="auc: a true pair's world-centroid distance (m; 1 for sequence files)")
     ap.add_argument("--max-segments", type=int, default=3000, help="auc: segments scored")
     args = ap.parse_args(argv)
     if args.what == "golden":
@@ -185,7 +191,7 @@ def main(argv=None) -> None:
         from lidar_iris_eval.errors import LirisError
 
         try:
-            out = auc_report(args.path, args.weights, args.gap, args.max_segments)
+            out = auc_report(args.path, args.weights, args.gap, args.max_segments, args.match)
         except LirisError as err:
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(2) from None

@@ -83,7 +83,8 @@ def retrieval_metrics(
 
 
 def segment_retrieval(w: dict, arch, data, min_frame_gap: int = 10, n: int = 3000,
-                      seed: int = 0, ignore_same_object: bool = False) -> dict:
+                      seed: int = 0, ignore_same_object: bool = False,
+                      pair_radius: float = 2.0) -> dict:
     """:func:`retrieval_metrics` of the NumPy network ``(w, arch)`` on held-out segments.
 
     ``data`` is a :class:`~lidar_iris_eval.descriptors.esm.dataset.SegmentSet`; at
@@ -91,13 +92,14 @@ def segment_retrieval(w: dict, arch, data, min_frame_gap: int = 10, n: int = 300
     time (resampled with the stream ``[0, s]``, normalised) and scored with the
     true pairs of :func:`~lidar_iris_eval.descriptors.esm.dataset.true_pairs` at
     ``min_frame_gap`` (30 = W for local-map segments). ``ignore_same_object``:
-    pairs of one object that are not true pairs are "don't care".
+    pairs of one object that are not true pairs are "don't care". ``pair_radius``:
+    :func:`true_pairs`' (1 m for plain sequences, whose objects are centroid tracks).
     """
     from lidar_iris_eval.descriptors.esm import network
     from lidar_iris_eval.descriptors.esm.dataset import true_pairs
     from lidar_iris_eval.descriptors.esm.segmentation import normalise, resample
 
-    vpairs = true_pairs(data, min_frame_gap=min_frame_gap)
+    vpairs = true_pairs(data, pair_radius, min_frame_gap=min_frame_gap)
     rows = np.arange(len(data))
     if len(rows) > n:
         rows = np.sort(np.random.default_rng(seed).choice(len(data), n, replace=False))

@@ -80,11 +80,15 @@ def embed_eval(net: ESMNet, data: SegmentSet, rows: np.ndarray, seed: int = 0) -
     return np.concatenate(out) if out else np.zeros((0, net.arch.fc[-1]), np.float32)
 
 
-def wl_loss(ea: torch.Tensor, ep: torch.Tensor, coarse: np.ndarray, objects: np.ndarray):
-    """Ratio triplet loss plus pairwise term with within-class hardest negatives."""
+def wl_loss(ea: torch.Tensor, ep: torch.Tensor, coarse: np.ndarray, objects: np.ndarray,
+            allowed: np.ndarray | None = None):
+    """Ratio triplet loss plus pairwise term with within-class hardest negatives
+    (``allowed``: the negative mask, by default :func:`negative_candidates`')."""
     d_pos = ((ea - ep) ** 2).sum(1)
     d_all = ((ea[:, None, :] - ep[None, :, :]) ** 2).sum(2)
-    allowed = torch.from_numpy(negative_candidates(coarse, objects))
+    if allowed is None:
+        allowed = negative_candidates(coarse, objects)
+    allowed = torch.from_numpy(allowed)
     d_neg = torch.where(allowed, d_all, torch.full_like(d_all, float("inf"))).min(1).values
     trip = torch.clamp(1.0 - d_neg / (d_pos + MARGIN), min=0.0)
     return (trip + d_pos).mean(), trip.detach(), d_pos.detach()
@@ -148,10 +152,11 @@ def held_out_rows(data: SegmentSet, n: int, seed: int = 0) -> np.ndarray:
 
 
 def _held_out(w: dict, arch, valid: SegmentSet, rng: np.random.Generator,
-              n: int = 3000, ignore_same_object: bool = False, gap: int = 10) -> dict:
+              n: int = 3000, ignore_same_object: bool = False, gap: int = 10,
+              pair_radius: float = 2.0) -> dict:
     """Figures of the exported NumPy network on (at most ``n`` of) held-out segments
     (:func:`metrics.segment_retrieval`; ``rng`` is unused, the subset is seeded 0)."""
-    return segment_retrieval(w, arch, valid, gap, n, 0, ignore_same_object)
+    return segment_retrieval(w, arch, valid, gap, n, 0, ignore_same_object, pair_radius)
 
 
 def _save(obj, path: Path) -> None:
@@ -168,8 +173,8 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
     Progress is counted in training minutes and steps summed over runs; the
     state (network, optimiser, step, minutes, NumPy and torch random states,
     selection checks, loss history) is written atomically every
-    ``checkpoint_every`` minutes and at the end, so rerunning continues where
-    the last checkpoint stopped.
+    ``checkpoint_every`` minutes, every ``checkpoint_steps`` steps (when set)
+    and at the end, so rerunning continues where the last checkpoint stopped.
     """
     lr = getattr(args, "lr", 1e-3)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
@@ -179,6 +184,12 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
             "dropped": False, "last_eval": 0.0, "final": False}
     if state_path.exists():
         saved = torch.load(state_path, weights_only=False)
+        if saved.get("arch", repr(net.arch)) != repr(net.arch):
+            from lidar_iris_eval.errors import LirisError
+
+            raise LirisError(state_path, "was trained with another network or segment "
+                                         "normalisation (--init, --norm-scale, --align-yaw); "
+                                         "rerun with the same options or another --work")
         net.load_state_dict(saved["net"])
         opt.load_state_dict(saved["opt"])
         prog = saved["progress"]
@@ -190,9 +201,12 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
         prog["final"] = False  # a larger budget continues a finished run
     eval_every = getattr(args, "eval_every", 8.0)
     ckpt_every = getattr(args, "checkpoint_every", 3.0)
+    ckpt_steps = int(getattr(args, "checkpoint_steps", 0) or 0)
+    radius = float(getattr(args, "pair_radius", 2.0))
+    neg_distance = float(getattr(args, "neg_distance", 0.0) or 0.0)
     sel = select_set() if select_set is not None else None
     if sel is not None:
-        sel_pairs = true_pairs(sel, min_frame_gap=gap)
+        sel_pairs = true_pairs(sel, radius, min_frame_gap=gap)
         sel_rows = held_out_rows(sel, 1500, seed=1)
     t0, base = time.time(), prog["minutes"]
     last_save = t0
@@ -203,6 +217,7 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
     def save() -> None:
         prog["minutes"] = minutes()
         _save({"net": net.state_dict(), "opt": opt.state_dict(), "progress": prog,
+               "arch": repr(net.arch),
                "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()},
               state_path)
 
@@ -239,8 +254,13 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
                                 align_yaw=net.arch.align_yaw) for s in ab.ravel()])
         idx = network.neighbour_index(pts, net.arch)
         emb = net(torch.from_numpy(pts), idx).reshape(len(ab), 2, -1)
+        allowed = None
+        if neg_distance > 0:  # centroid tracks: nothing this close to the anchor is a negative
+            allowed = negative_candidates(train.coarse[ab[:, 0]], train.object_id[ab[:, 0]],
+                                          train.world[ab[:, 0]], train.world[ab[:, 1]],
+                                          train.world_id[ab[:, 0]], neg_distance)
         loss, trip, _ = wl_loss(emb[:, 0], emb[:, 1], train.coarse[ab[:, 0]],
-                                train.object_id[ab[:, 0]])
+                                train.object_id[ab[:, 0]], allowed)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -250,7 +270,8 @@ def _train(net: ESMNet, train: SegmentSet, sampler: PairSampler, args, work: Pat
             recent = np.mean(prog["hist"][-20:], axis=0)
             print(f"step {prog['step']} loss {recent[0]:.4f} active {recent[1]:.2f} "
                   f"{minutes():.1f} min", flush=True)
-        if time.time() - last_save >= ckpt_every * 60:
+        if time.time() - last_save >= ckpt_every * 60 or (
+                ckpt_steps and prog["step"] % ckpt_steps == 0):
             save()
             last_save = time.time()
     if not prog["final"]:
@@ -283,12 +304,19 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
     (optional) weights scored beside the new ones on the selection and
     validation sets at export, with the choice rule's verdict.
     """
+    out = Path(args.out) if getattr(args, "out", None) else network.WEIGHTS_FILE
+    if "export" in stages and out.exists() and not getattr(args, "overwrite", False):
+        from lidar_iris_eval.errors import LirisError
+
+        raise LirisError(out, "exists (a finished model); give --overwrite to replace it, "
+                              "or another --out")
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     work = Path(args.work)
     gap = int(getattr(args, "min_frame_gap", 10))
-    pairs = true_pairs(train, min_frame_gap=gap)
+    radius = float(getattr(args, "pair_radius", 2.0))
+    pairs = true_pairs(train, radius, min_frame_gap=gap)
     sampler = PairSampler(pairs, train)
     init = getattr(args, "init", None)
     if init is not None:
@@ -338,7 +366,6 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
         _save(net.state_dict(), ckpt)
     if "export" in stages:
         net.eval()
-        out = Path(args.out) if args.out else network.WEIGHTS_FILE
         weights = net.export()
         tmp = out.with_name(out.name + ".tmp.npz")
         np.savez(tmp, **weights)
@@ -352,16 +379,18 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
             sets["selection"] = select_set
         for name, make in sets.items():
             valid = make()
-            metrics = _held_out(w, arch, valid, np.random.default_rng(0), gap=gap)
+            metrics = _held_out(w, arch, valid, np.random.default_rng(0), gap=gap,
+                                pair_radius=radius)
             entry = {k: v for k, v in metrics.items() if k != "roc"}
             entry["segments"] = len(valid)
-            entry["objects_with_pairs"] = PairSampler(true_pairs(valid, min_frame_gap=gap),
-                                                      valid).objects
+            entry["objects_with_pairs"] = PairSampler(
+                true_pairs(valid, radius, min_frame_gap=gap), valid).objects
             loose = _held_out(w, arch, valid, np.random.default_rng(0),
-                              ignore_same_object=True, gap=gap)
+                              ignore_same_object=True, gap=gap, pair_radius=radius)
             entry["same_object_ignored"] = {k: v for k, v in loose.items() if k != "roc"}
             if compare is not None:
-                old = _held_out(w_old, arch_old, valid, np.random.default_rng(0), gap=gap)
+                old = _held_out(w_old, arch_old, valid, np.random.default_rng(0), gap=gap,
+                                pair_radius=radius)
                 entry["compared"] = {k: v for k, v in old.items() if k != "roc"}
                 entry["compared_roc"] = old["roc"]
             if name == "validation":
