@@ -96,7 +96,7 @@ def test_csv_json_and_markdown(table):
         from_csv = list(csv.DictReader(f))
     from_json = json.loads((out / "table1.json").read_text())
     assert len(from_csv) == len(from_json) == len(rows)
-    for c, j in zip(from_csv, from_json):
+    for c, j in zip(from_csv, from_json, strict=True):
         assert int(c["localisations"]) == j["localisations"]
         assert c["method"] == j["method"] and c["world"] == j["world"]
     md = load_script().markdown(rows).splitlines()
