@@ -37,6 +37,7 @@ import csv
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +53,13 @@ COLUMNS = ("world", "sensor", "frames", "method", "preset", "revisits", "localis
 def liris(*args: str) -> None:
     """Run the liris CLI of this interpreter; stop on its error."""
     cmd = [sys.executable, "-m", "lidar_iris_eval", *args]
+    t0 = time.perf_counter()
     done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     if done.returncode:
         sys.stderr.write(done.stderr)
         raise SystemExit(f"table1: failed: liris {' '.join(args)}")
+    print(f"table1: liris {' '.join(args[:2])} ... {time.perf_counter() - t0:.0f} s",
+          file=sys.stderr, flush=True)
 
 
 def method_groups(methods: list[str]) -> list[list[str]]:
