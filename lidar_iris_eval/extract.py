@@ -166,11 +166,17 @@ def cache_key(seq, descriptor: Descriptor, fingerprint: str | None = None) -> Ca
     )
 
 
+def _read_inputs(descriptor) -> frozenset[str]:
+    """What to read for ``descriptor``: its declared and its optional inputs."""
+    read = getattr(descriptor, "read_inputs", None)
+    return read() if read is not None else frozenset(getattr(descriptor, "inputs", ()))
+
+
 def _inputs_key(seq, descriptor: Descriptor) -> str:
     """The inputs beyond the scans: labels (cache.input_fingerprint) and, for a method
     reading local maps, what its poses depend on (odometry.odometry_key: the GT poses'
     hash with ``gt``, KISS-ICP's version and settings with ``kiss-icp``)."""
-    key = input_fingerprint(seq, descriptor.inputs)
+    key = input_fingerprint(seq, _read_inputs(descriptor))
     if reads_local_maps(descriptor) and hasattr(descriptor, "local_map_settings"):
         from lidar_iris_eval.localmaps.odometry import odometry_key
 
@@ -463,7 +469,8 @@ def _compute_range(seq, descriptors, a: int, b: int, tick=None):
     read_s = np.empty(b - a)
     wants = [d.wants_scan() for d in descriptors]
     # read only what the methods declare (labels only for a method that uses them)
-    inputs = frozenset().union(*(d.inputs for d, w in zip(descriptors, wants, strict=True) if w))
+    inputs = frozenset().union(*(_read_inputs(d) for d, w in zip(descriptors, wants, strict=True)
+                                 if w))
     i, name = a, descriptors[0].name if descriptors else "descriptor"
     try:
         if len(descriptors) == 1 and reads_local_maps(descriptors[0]):

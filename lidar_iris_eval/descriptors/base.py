@@ -137,6 +137,9 @@ class Descriptor(abc.ABC):
     symmetric: ClassVar[bool] = False
     #: what ``compute`` reads from a scan (subset of :data:`KNOWN_INPUTS`)
     inputs: ClassVar[frozenset[str]] = frozenset({"points"})
+    #: inputs used when the scan has them and not required (ESM's ``ground: auto`` takes the
+    #: labels where they exist): read with the scan and part of the cache key, never checked
+    optional_inputs: ClassVar[frozenset[str]] = frozenset()
     #: pass the whole scan to ``compute`` even if ``inputs`` is only points
     takes_scan: ClassVar[bool] = False
     #: True for retrieval + verification methods without an all-pairs distance
@@ -199,6 +202,10 @@ class Descriptor(abc.ABC):
             if name in self.inputs and getattr(scan, name, None) is None:
                 raise LirisError(self.name, f"needs per-point {name}, but the scan has none")
         return self.compute(scan)
+
+    def read_inputs(self) -> frozenset[str]:
+        """Everything the pipeline reads for this method: ``inputs`` and ``optional_inputs``."""
+        return frozenset(self.inputs) | frozenset(self.optional_inputs)
 
     def check_inputs(self, sequence: Any) -> None:
         """Raise a LirisError naming where the missing inputs would be.

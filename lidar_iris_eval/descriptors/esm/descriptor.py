@@ -187,6 +187,10 @@ class ESM(Descriptor):
         self._reused: float | None = None
         if self.local_map:  # the pipeline builds a local map per frame (extract.py)
             self.inputs = frozenset({"points", "local_map"})
+        elif self.params.ground == "labels":
+            self.inputs = frozenset({"points", "labels"})
+        elif self.params.ground == "auto":  # labels where the scan has them, else the height rule
+            self.optional_inputs = frozenset({"labels"})
 
     # ------------------------------------------------------------------ local maps
 
