@@ -139,3 +139,13 @@ def test_segments_command_refuses_bad_input(tiny, tmp_path, capsys, args, words)
     code, text, err = run_cli(["segments", tiny, *args], capsys)
     assert code == 2 and text == ""
     assert err.count("liris: error:") == 1 and words in err
+
+
+def test_segments_command_does_not_replace_an_existing_output(tiny, tmp_path, capsys):
+    """--json-out and --figure follow the rule of every single output file: an existing
+    file is replaced only with --overwrite (it was replaced silently)."""
+    out = tmp_path / "mine.json"
+    out.write_text("the user's own file\n")
+    code, text, err = run_cli(["segments", tiny, "--limit", "40", "--json-out", out], capsys)
+    assert code == 2 and err.count("liris: error:") == 1 and "--overwrite" in err, err
+    assert out.read_text() == "the user's own file\n"

@@ -16,6 +16,7 @@ import click
 from lidar_iris_eval.cli.output import check_output_file, write_output_file
 from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_options
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.ownership import check_new_files
 
 
 def _overrides(items: tuple[str, ...]) -> dict:
@@ -58,8 +59,9 @@ def _overrides(items: tuple[str, ...]) -> dict:
               help="Write the side-by-side figure to FILE (.png, .pdf or .svg).")
 @click.option("--with-json", "with_json", multiple=True, type=click.Path(path_type=Path),
               help="Reports of earlier runs (their --json-out) drawn in the same figure.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --json-out / --figure.")
 def command(sequence, reader_options, presets, params, exclude, radius, match, gap, limit,
-            name, json_path, figure_path, with_json):
+            name, json_path, figure_path, with_json, overwrite):
     """Segments per local map, their repeatability at neighbours and revisits, and the
     retrieval rank of the true target, for a sequence with poses (ESM local maps)."""
     from lidar_iris_eval.descriptors import get_descriptor
@@ -77,6 +79,10 @@ def command(sequence, reader_options, presets, params, exclude, radius, match, g
         check_output_file(figure_path, "--figure")
         if figure_path.suffix.lower() not in (".png", ".pdf", ".svg"):
             raise LirisError(f"--figure {figure_path}", "give a .png, .pdf or .svg file")
+    # the shared rule for single output files: an existing one only with --overwrite, never
+    # a file of the input sequence (it was replaced without a word)
+    check_new_files([p for p in (json_path, figure_path) if p is not None], overwrite,
+                    "--json-out/--figure", inputs=[sequence, *with_json])
     earlier = []
     for path in with_json:
         try:
