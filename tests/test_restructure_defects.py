@@ -519,3 +519,66 @@ def test_extraction_through_the_pool_equals_serial(tiny_mixed, tmp_path):
     pooled = extract_many(seq, descs, chunk_size=40, executor=ProcessExecutor(workers=2))
     for a, b in zip(serial, pooled, strict=True):
         np.testing.assert_array_equal(a.descriptors, b.descriptors)
+
+
+# --- item 2: the conventions of a command call are parsed once, by Settings.from_options --------
+
+def test_from_options_without_a_preset():
+    from lidar_iris_eval.evaluation.conventions import PRESETS
+    from lidar_iris_eval.evaluation.settings import Settings
+
+    assert Settings.from_options(None) is PRESETS["liris"]
+    assert Settings.from_options(None, radius=4.0, exclude="paper") is PRESETS["liris"]
+    own = Settings.from_options(None, exclude="12", distance="planar")
+    assert (own.name, own.exclude, own.exclude_name, own.distance) == ("custom", 12, "custom",
+                                                                       "planar")
+    assert own.source == "command-line options"
+    timed = Settings.from_options(None, exclude="2.5s")
+    assert (timed.exclude, timed.exclude_seconds, timed.name) == (None, 2.5, "custom")
+
+
+def test_from_options_over_a_preset_and_a_replayed_run():
+    from lidar_iris_eval.evaluation.conventions import get_convention
+    from lidar_iris_eval.evaluation.settings import Settings
+
+    logg3d = get_convention("logg3d")
+    assert Settings.from_options(logg3d) is logg3d  # nothing given: the preset itself
+    wider = Settings.from_options(logg3d, radius=5.0)
+    assert (wider.name, wider.radius, wider.exclude_seconds) == ("logg3d+custom", 5.0, 30.0)
+    framed = Settings.from_options(logg3d, exclude="reference")  # frames replace seconds
+    assert (framed.exclude, framed.exclude_seconds, framed.window_rule) == (300, None, "logg3d")
+    recorded = Settings.from_dict(Settings(inclusive_radius=True, exclude=9).to_dict())
+    again = Settings.from_options(recorded, distance="planar")
+    assert (again.name, again.exclude, again.inclusive_radius) == ("custom", 9, True)
+
+
+def test_from_options_refuses_bad_values_and_unknown_options():
+    from lidar_iris_eval.errors import LirisError
+    from lidar_iris_eval.evaluation.settings import Settings, parse_exclude
+
+    for bad in ("ten", "0", "-3s", "xs"):
+        with pytest.raises(LirisError):
+            Settings.from_options(None, exclude=bad)
+    with pytest.raises(LirisError, match="seconds applies"):
+        parse_exclude("30s", seconds=False)
+    with pytest.raises(TypeError):
+        Settings.from_options(None, candidates=3)
+
+
+def test_cli_conventions_go_through_from_options(tmp_path, monkeypatch, capsys):
+    from conftest import run_cli
+
+    from lidar_iris_eval.evaluation.settings import Settings
+
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    poses = np.zeros((40, 12))
+    poses[:, [0, 5, 10]] = 1.0
+    poses[:, 3], poses[:, 11] = 10 * np.cos(t), 10 * np.sin(t)
+    np.savetxt(tmp_path / "poses.txt", poses)
+    seen, real = [], Settings.from_options.__func__
+    monkeypatch.setattr(Settings, "from_options", classmethod(
+        lambda cls, conv=None, **given: seen.append((conv, given)) or real(cls, conv, **given)))
+    code, out, err = run_cli(["gt", "--poses", tmp_path / "poses.txt", "--exclude", "12",
+                              "--radius", "3", "--json"], capsys)
+    assert code == 0, err
+    assert seen == [(None, {"radius": 3.0, "exclude": "12"})]

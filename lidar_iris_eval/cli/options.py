@@ -7,8 +7,8 @@ import functools
 import click
 from click.core import ParameterSource
 
-from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.evaluation.settings import EXCLUDE_PRESETS, resolve_exclude
+from lidar_iris_eval.evaluation.settings import EXCLUDE_PRESETS, OPTION_RULES, Settings  # noqa: F401 (re-exported)
+from lidar_iris_eval.evaluation.settings import parse_exclude as settings_parse_exclude
 
 #: where the resolved convention preset is kept for the command body (click ctx.meta)
 CONVENTION_KEY = "liris.convention"
@@ -17,35 +17,10 @@ REPLAYED_KEY = "liris.replayed_convention"
 
 
 def parse_exclude(value: str) -> tuple[int, str]:
-    """``"paper"``, ``"reference"`` or an integer to ``(E, name)`` (:func:`resolve_exclude`)."""
-    if value not in EXCLUDE_PRESETS:
-        if isinstance(value, str) and value.strip().lower().endswith("s"):
-            raise LirisError(f"--exclude {value}",
-                             "a window in seconds applies to liris eval (by scan times), not here")
-        try:
-            int(value)
-        except ValueError:
-            raise LirisError(
-                f"--exclude {value}",
-                "expected a number of frames, 'paper' (30), 'reference' (300) "
-                "or seconds such as 30s",
-            ) from None
-    return resolve_exclude(value)
-
-
-def parse_exclude_window(value: str) -> tuple[int | None, float | None, str]:
-    """Like :func:`parse_exclude`, also accepting seconds (``"30s"``): ``(E, seconds, name)``."""
-    text = str(value).strip()
-    if text.lower().endswith("s") and text not in EXCLUDE_PRESETS:
-        try:
-            seconds = float(text[:-1])
-        except ValueError:
-            raise LirisError(f"--exclude {value}", "expected seconds such as 30s") from None
-        if not seconds > 0:
-            raise LirisError(f"--exclude {value}", "exclusion window must be positive")
-        return None, seconds, "custom"
-    frames, name = parse_exclude(text)
-    return frames, None, name
+    """``"paper"``, ``"reference"`` or frames to ``(E, name)``; seconds are refused here
+    (commands without scan times). The parse is :func:`settings.parse_exclude`."""
+    frames, _, name = settings_parse_exclude(value, seconds=False)
+    return frames, name
 
 
 def _given(ctx: click.Context, name: str) -> bool:
@@ -55,58 +30,32 @@ def _given(ctx: click.Context, name: str) -> bool:
 
 
 def resolve_convention(ctx: click.Context, name: str | None, kwargs: dict):
-    """The :class:`~lidar_iris_eval.evaluation.conventions.Convention` of a command call.
+    """The :class:`~lidar_iris_eval.evaluation.settings.Settings` of a command call.
 
-    A preset's values fill every ground-truth option the user did not set;
-    options set explicitly win (the result is then named ``<preset>+custom``).
-    Without a preset, the options themselves form the convention ("liris"
-    with the given values). ``kwargs`` is updated in place with the values
-    used; a window in seconds leaves ``exclude`` as the string ``"<T>s"``.
-
-    A run replayed with ``--config`` (and no ``--convention``) starts from its
-    recorded rules, ``Settings.from_dict(config["convention"])``, and only the
-    options given on the command line change them.
+    The options the user set (command line, environment or a replayed config)
+    go to :meth:`Settings.from_options`, the one parse and merge of the
+    conventions: a preset's values fill every option not set, options set
+    explicitly win (``<preset>+custom``); without a preset the options form
+    the convention. A run replayed with ``--config`` (and no ``--convention``)
+    starts from its recorded rules, ``Settings.from_dict(config["convention"])``.
+    ``kwargs`` is updated in place with the values used; a window in seconds
+    leaves ``exclude`` as the string ``"<T>s"``.
     """
-    from lidar_iris_eval.evaluation.conventions import get_convention, same_rules, with_overrides
-    from lidar_iris_eval.evaluation.settings import Settings
+    from lidar_iris_eval.evaluation.conventions import get_convention
 
-    replayed = ctx.meta.get(REPLAYED_KEY)
-    if replayed is not None and name is None:
-        return _replayed_convention(ctx, Settings.from_dict(replayed), kwargs)
-    # a query/database run (liris eval --query --database) may use the cross-session presets
-    cross = bool(ctx.params.get("query_path")) and bool(ctx.params.get("database_path"))
-    base = get_convention(name or "liris", cross_session=cross)
-    values = {}
-    if _given(ctx, "radius") or name is None:
-        values["radius"] = kwargs["radius"]
-    if _given(ctx, "exclude") or name is None:
-        frames, seconds, _ = parse_exclude_window(kwargs["exclude"])
-        values["exclude"] = frames
-        values["exclude_seconds"] = seconds
-    for key in ("distance", "pose_frame", "recall_denominator"):
-        if key in kwargs and (_given(ctx, key) or name is None):
-            values[key] = kwargs[key]
-    conv = with_overrides(base, **values)
-    if name is None:  # no preset asked: "liris" when the options are its defaults
-        conv = base if same_rules(conv, base) else with_overrides(
-            conv, name="custom", source="command-line options")
-    _effective_values(conv, kwargs, keep_exclude=_given(ctx, "exclude") or name is None)
-    return conv
-
-
-def _replayed_convention(ctx: click.Context, recorded, kwargs: dict):
-    """``--config``: the recorded Settings, with the ground-truth options given here."""
-    from lidar_iris_eval.evaluation.conventions import with_overrides
-
-    values = {key: kwargs[key] for key in ("radius", "distance", "pose_frame",
-                                           "recall_denominator")
-              if key in kwargs and _given(ctx, key)}
-    if _given(ctx, "exclude"):
-        values["exclude"], values["exclude_seconds"], _ = parse_exclude_window(kwargs["exclude"])
-    if values and recorded.name.endswith("custom"):  # already custom: keep its name
-        values["name"] = recorded.name
-    conv = with_overrides(recorded, **values)
-    _effective_values(conv, kwargs, keep_exclude=False)
+    replayed = ctx.meta.get(REPLAYED_KEY) if name is None else None
+    if replayed is not None:
+        base = Settings.from_dict(replayed)
+    elif name is not None:  # a query/database run may use the cross-session presets
+        cross = bool(ctx.params.get("query_path")) and bool(ctx.params.get("database_path"))
+        base = get_convention(name, cross_session=cross)
+    else:
+        base = None
+    given = {key: kwargs[key] for key in OPTION_RULES if key in kwargs and _given(ctx, key)}
+    conv = Settings.from_options(base, **given)
+    # the user's spelling of E stays ("paper", "30s") unless a preset or a replay set it
+    keep = replayed is None and ("exclude" in given or name is None)
+    _effective_values(conv, kwargs, keep_exclude=keep)
     return conv
 
 

@@ -79,14 +79,16 @@ import numpy as np
 
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.ground_truth import database_limits, revisit_queries_within
-from lidar_iris_eval.evaluation.settings import RULES, Convention, Settings
+from lidar_iris_eval.evaluation.settings import (
+    LIRIS,
+    Convention,
+    Settings,
+    same_rules,
+    with_overrides,
+)
 
 PRESETS: dict[str, Settings] = {
-    "liris": Settings(
-        name="liris", radius=4.0, exclude=30, distance="3d", pose_frame="camera",
-        recall_denominator="revisits",
-        source="LiDAR Iris paper (IROS 2020) text: 4 m, E = 30; recall over revisit queries "
-               "as in the authors' draw.py"),
+    "liris": LIRIS,  # the defaults of every rule (settings.py)
     "scancontext-eval": Settings(
         name="scancontext-eval", radius=5.0, exclude=49, distance="planar",
         pose_frame="camera", recall_denominator="accepted", last_frame_query=False,
@@ -175,30 +177,6 @@ def get_convention(name: str, cross_session: bool = False) -> Settings:
     raise LirisError(f"--convention {name}",
                      f"unknown convention; choose from "
                      f"{', '.join([*PRESETS, *CROSS_SESSION_PRESETS])}")
-
-
-def with_overrides(conv: Settings, **values) -> Settings:
-    """A copy of ``conv`` with the given fields replaced (None values are ignored).
-
-    Setting ``exclude`` clears ``exclude_seconds`` and vice versa, since a
-    window is either in frames or in seconds. A changed rule renames the
-    copy ``<name>+custom`` unless ``name`` is given.
-    """
-    given = {k: v for k, v in values.items() if v is not None}
-    if "exclude" in given:
-        given.setdefault("exclude_seconds", None)
-    if given.get("exclude_seconds") is not None:
-        given["exclude"] = None
-    changed = any(getattr(conv, k) != v for k, v in given.items()
-                  if k not in ("name", "source"))
-    if changed and "name" not in given:
-        given["name"] = f"{conv.name}+custom"
-    return conv.replace(**given)
-
-
-def same_rules(a: Settings, b: Settings) -> bool:
-    """True when two conventions differ at most in name and source."""
-    return all(getattr(a, k) == getattr(b, k) for k in RULES)
 
 
 __all__ = ["BEVPLACE_SPLITS", "CROSS_SESSION_PRESETS", "NOT_OFFERED", "PRESETS", "Convention",

@@ -61,6 +61,35 @@ def resolve_exclude(value: int | str) -> tuple[int, str]:
     return frames, named
 
 
+def parse_exclude(value: int | str, seconds: bool = True
+                  ) -> tuple[int | None, float | None, str]:
+    """The one parse of a user's E: ``(frames, seconds, name)``.
+
+    ``value`` is a number of frames, a preset name (``"paper"``, ``"reference"``)
+    or, when ``seconds`` allows it, a window in seconds such as ``"30s"``
+    (``frames`` is then None and ``name`` ``"custom"``). The message of a bad
+    value names the option as the user wrote it (``--exclude`` on the command line).
+    """
+    text = value.strip() if isinstance(value, str) else value
+    if isinstance(text, str) and text.lower().endswith("s") and text not in EXCLUDE_PRESETS:
+        if not seconds:
+            raise LirisError(option("exclude", value), "a window in seconds applies to liris "
+                                                       "eval (by scan times), not here")
+        window = _seconds(text)
+        if not window > 0:
+            raise LirisError(option("exclude", value), "exclusion window must be positive")
+        return None, window, "custom"
+    if isinstance(text, str) and text not in EXCLUDE_PRESETS:
+        try:
+            int(text)
+        except ValueError:
+            raise LirisError(option("exclude", value), "expected a number of frames, 'paper' "
+                             "(30), 'reference' (300)" + (" or seconds such as 30s"
+                                                          if seconds else "")) from None
+    frames, name = resolve_exclude(text)
+    return frames, None, name
+
+
 def _seconds(value: Any) -> float | None:
     """``"30s"`` -> 30.0; anything else -> None."""
     if isinstance(value, str) and value.strip().lower().endswith("s") \
@@ -206,9 +235,85 @@ class Settings:
         name = block.get("preset", block.get("name"))
         return cls(**values, name=name, source=block.get("source") or "", **extra)
 
+    @classmethod
+    def from_options(cls, convention: Settings | None = None, **given) -> Settings:
+        """The conventions of one command call, parsed once.
+
+        Parameters
+        ----------
+        convention : the rules to start from: a peer's preset
+            (:func:`~lidar_iris_eval.evaluation.conventions.get_convention`), the
+            recorded rules of a run replayed with ``--config``
+            (:meth:`Settings.from_dict`), or None when no preset is asked, so the
+            options alone form the convention.
+        **given : the options the user set explicitly, as written (``exclude`` may be
+            ``"paper"``, ``"12"`` or ``"30s"``); None values are ignored.
+
+        Returns
+        -------
+        Settings
+            ``convention`` with the given rules replaced, renamed ``<name>+custom``
+            when a rule changes (a name already ending in ``custom`` is kept).
+            Without a convention: the ``liris`` preset when the options are its
+            rules, else ``custom`` from the command-line options. The only place
+            the command line's conventions are parsed and merged, so a preset
+            added to the table, a replayed run and the Python API agree.
+        """
+        unknown = set(given) - set(OPTION_RULES)
+        if unknown:
+            raise TypeError(f"Settings.from_options: unknown options {sorted(unknown)}")
+        values = {k: v for k, v in given.items() if v is not None}
+        if "exclude" in values:
+            values["exclude"], values["exclude_seconds"], _ = parse_exclude(values["exclude"])
+        if convention is None:
+            conv = with_overrides(LIRIS, **values)
+            return LIRIS if same_rules(conv, LIRIS) else with_overrides(
+                conv, name="custom", source="command-line options")
+        if not values:  # nothing given: the rules themselves
+            return convention
+        if convention.name.endswith("custom"):
+            values["name"] = convention.name
+        return with_overrides(convention, **values)
+
 
 _LIRIS_RULES: Settings | None = None
-_LIRIS_RULES = Settings(name="liris")
+#: the ``liris`` preset (the conventions table lists it first): the defaults of every rule
+_LIRIS_RULES = Settings(
+    name="liris", radius=4.0, exclude=30, distance="3d", pose_frame="camera",
+    recall_denominator="revisits",
+    source="LiDAR Iris paper (IROS 2020) text: 4 m, E = 30; recall over revisit queries "
+           "as in the authors' draw.py")
+LIRIS = _LIRIS_RULES
+
+
+def with_overrides(conv: Settings, **values) -> Settings:
+    """A copy of ``conv`` with the given fields replaced (None values are ignored).
+
+    Setting ``exclude`` clears ``exclude_seconds`` and vice versa, since a
+    window is either in frames or in seconds. A changed rule renames the
+    copy ``<name>+custom`` unless ``name`` is given.
+    """
+    given = {k: v for k, v in values.items() if v is not None}
+    if "exclude" in given:
+        given.setdefault("exclude_seconds", None)
+    if given.get("exclude_seconds") is not None:
+        given["exclude"] = None
+    changed = any(getattr(conv, k) != v for k, v in given.items()
+                  if k not in ("name", "source"))
+    if changed and "name" not in given:
+        given["name"] = f"{conv.name}+custom"
+    return conv.replace(**given)
+
+
+def same_rules(a: Settings, b: Settings) -> bool:
+    """True when two conventions differ at most in name and source."""
+    return all(getattr(a, k) == getattr(b, k) for k in RULES)
+
+
+#: the rules a command line sets (``--radius``, ``--exclude``, ``--distance``, ...)
+OPTION_RULES = ("radius", "exclude", "distance", "pose_frame", "recall_denominator")
+
+
 
 #: the name the conventions module and its presets use for the same object
 Convention = Settings
