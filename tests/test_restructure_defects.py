@@ -582,3 +582,41 @@ def test_cli_conventions_go_through_from_options(tmp_path, monkeypatch, capsys):
                               "--radius", "3", "--json"], capsys)
     assert code == 0, err
     assert seen == [(None, {"radius": 3.0, "exclude": "12"})]
+
+
+def test_gt_merges_the_sequence_pose_frame_through_from_options(tiny_mixed, capsys):
+    """A frame the sequence imposes (LiDAR poses) is merged like an option: a ``custom``
+    convention stays ``custom`` (it was ``custom+custom``); a preset becomes ``+custom``."""
+    import json
+
+    from conftest import run_cli
+
+    def convention(*args):
+        code, out, err = run_cli(["gt", tiny_mixed, *args, "--json"], capsys)
+        assert code == 0, err
+        return json.loads(out)
+
+    lidar_poses = convention("--radius", "7", "--lidar-frame-poses")
+    assert (lidar_poses["convention"], lidar_poses["pose_frame"]) == ("custom", "lidar")
+    asked = convention("--radius", "7", "--pose-frame", "lidar")
+    assert (asked["convention"], asked["pose_frame"]) == ("custom", "lidar")
+    assert convention("--lidar-frame-poses")["convention"] == "liris+custom"
+    assert convention()["convention"] == "liris"
+
+
+def test_pseudo_revisits_parses_its_window_with_from_options():
+    """An out-and-back line, 1 m steps: the return frames i >= 63 have a partner j <= i - 30
+    within 4 m (i = 63 is at x = 36, frame 33 at x = 33); E = 300 exceeds the 100 frames."""
+    from lidar_iris_eval.errors import LirisError
+    from lidar_iris_eval.evaluation.sequence_check import pseudo_revisits
+
+    x = np.r_[np.arange(50), np.arange(49, -1, -1)].astype(float)
+    positions = np.c_[x, np.zeros(100), np.zeros(100)]
+    revisit, pseudo = pseudo_revisits(positions, 30)
+    assert np.flatnonzero(revisit).tolist() == list(range(63, 100))
+    named, named_pseudo = pseudo_revisits(positions, "paper")
+    np.testing.assert_array_equal(named, revisit)
+    np.testing.assert_array_equal(named_pseudo, pseudo)
+    assert not pseudo_revisits(positions, "reference")[0].any()
+    with pytest.raises(LirisError, match="exclude"):
+        pseudo_revisits(positions, "often")

@@ -1,7 +1,15 @@
 """``liris eval``: protocol 1 and/or 2 for one or more descriptors, written to a run folder.
 
-Parsing, printing and writing only: the evaluation itself is
-:func:`lidar_iris_eval.evaluation.evaluate.evaluate`.
+Parsing only: the options become one frozen
+:class:`~lidar_iris_eval.cli.eval_request.EvalRequest`, and :func:`mode_of`
+picks the function that runs, writes and prints it (one sequence:
+:mod:`~lidar_iris_eval.cli.sequence_eval`; several sequences or a plan:
+:mod:`~lidar_iris_eval.cli.eval_many`; a query/database pair:
+:mod:`~lidar_iris_eval.cli.sessions_eval`; a plan of pairs:
+:mod:`~lidar_iris_eval.cli.sessions_plan`; a pair list:
+:mod:`~lidar_iris_eval.cli.pairs_eval`; loop files:
+:mod:`~lidar_iris_eval.cli.loops_eval`). Each mode checks the options it
+needs; the evaluation itself is :func:`lidar_iris_eval.evaluation.evaluate.evaluate`.
 """
 
 from __future__ import annotations
@@ -10,37 +18,25 @@ from pathlib import Path
 
 import click
 
-from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
-from lidar_iris_eval.cli.descriptor_options import build_descriptors, descriptor_options, open_input
-from lidar_iris_eval.cli.loop_options import (
-    check_odometry_file,
-    loop_pose_options,
-    read_odometry,
-)
-from lidar_iris_eval.cli.loops_eval import loops_options
+from lidar_iris_eval.cli.descriptor_options import descriptor_options
+from lidar_iris_eval.cli.eval_many import run_many
+from lidar_iris_eval.cli.eval_request import EvalRequest
+from lidar_iris_eval.cli.loop_options import loop_pose_options
+from lidar_iris_eval.cli.loops_eval import loops_options, run_loops
 from lidar_iris_eval.cli.options import current_convention, ground_truth_options
-from lidar_iris_eval.cli.output import echo_json
+from lidar_iris_eval.cli.pairs_eval import run_pairs
+from lidar_iris_eval.cli.sequence_eval import run_sequence
+from lidar_iris_eval.cli.sessions_eval import run_sessions
+from lidar_iris_eval.cli.sessions_plan import is_sessions_plan, run_sessions_plan
 from lidar_iris_eval.cli.workflow import (
     config_extra,
-    externals_for,
-    extract_all,
+    external_options,
     table_format,
     workflow_options,
 )
-from lidar_iris_eval.errors import LirisError, register_flags
-from lidar_iris_eval.evaluation.evaluate import (
-    bind_exclusion,
-    check_request,
-    evaluate,
-    export_loops,
-    loop_export_paths,
-)
-from lidar_iris_eval.executor import check_scheduler, open_executor
+from lidar_iris_eval.errors import register_flags
+from lidar_iris_eval.evaluation.evaluate import loop_export_paths
 from lidar_iris_eval.matching.blocks import DEFAULT_PAIR_BUDGET
-from lidar_iris_eval.ownership import check_new_files
-from lidar_iris_eval.runs.table import render_band_table, render_table
-from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, json_ready, write_run
-from lidar_iris_eval.sensors import resolve_sensor
 
 #: library keywords (Settings, evaluate) -> the flags that set them, for error messages
 register_flags({
@@ -115,191 +111,72 @@ register_flags({
 @click.option("--scheduler", default="processes", show_default=True,
               help="processes (a local pool of --workers), local (a Dask LocalCluster of "
                    "--workers) or tcp://HOST:PORT (an existing Dask cluster).")
-def command(sequence, protocols, query_path, database_path, align_path, pairs_text, loop_paths,
-            loops_format, loops_index_base, loops_gap, convention_band, ranking,
-            descriptor_text, preset, params, sensor, cache_dir, workers,
-            quiet, radius, exclude, distance, pose_frame, recall_denominator, candidates,
-            export_path, out, overwrite, block_pairs, as_json, reader_options, plan, scheduler,
-            loop_settings, odometry, odometry_path, seeds, loop_extra):
+def command(**options) -> None:
     """Evaluate descriptors on SEQUENCE with protocol 1 and/or 2.
 
     Descriptors are extracted first when the cache lacks them. Results go to a
     run folder (docs/results-format.md) that `liris plot` reads.
     """
+    request = build_request(**options)
+    MODE_RUNNERS[mode_of(request)](request)
+
+
+def build_request(*, sequence, protocols, query_path, database_path, align_path, pairs_text,
+                  loop_paths, loops_format, loops_index_base, loops_gap, convention_band,
+                  ranking, descriptor_text, preset, params, sensor, cache_dir, workers, quiet,
+                  candidates, export_path, out, overwrite, block_pairs, as_json,
+                  reader_options, plan, scheduler, loop_settings, odometry, odometry_path,
+                  seeds, loop_extra, **conventions) -> EvalRequest:
+    """The :class:`EvalRequest` of this call's options.
+
+    ``conventions`` are the ground-truth options (``radius``, ``exclude``, ...):
+    :func:`~lidar_iris_eval.cli.options.ground_truth_options` has already
+    resolved them into the running command's convention, so they are read
+    from there, not again.
+    """
     conv = current_convention()  # every ground-truth rule, validated once (Settings)
-    if workers < 1:
-        raise LirisError(f"--workers {workers}", "must be at least 1")
-    settings = conv.replace(candidates=candidates, pair_budget=block_pairs)
-    within = query_path is None and database_path is None and align_path is None
-    single = within and plan is None and len(sequence) == 1 and not loop_paths \
-        and pairs_text is None and seeds is None
-    if convention_band and not single:
-        raise LirisError("--convention-band", "applies to one within-sequence run of "
-                         "descriptors (no --query/--database, --plan, --loops, --pairs, --seeds)")
-    if not within:
-        _within_sequence_odometry(odometry)
-        from lidar_iris_eval.cli.sessions_eval import evaluate_sessions_cli
-
-        evaluate_sessions_cli(sequence, query_path, database_path, align_path, protocols,
-                              descriptor_text, preset, params, sensor, cache_dir, workers, quiet,
-                              settings, conv, out, overwrite, as_json, reader_options, plan,
-                              export_path, scheduler)
-        return
-    if plan is not None and not sequence:
-        from lidar_iris_eval.cli.sessions_plan import is_sessions_plan, run_sessions_plan
-
-        if is_sessions_plan(plan):  # query/database pairs
-            _within_sequence_odometry(odometry)
-            if protocols:
-                raise LirisError("--protocol", "does not apply to a plan of query/database "
-                                               "pairs")
-            run_sessions_plan(plan, descriptor_text, preset, params, sensor, cache_dir, workers,
-                              quiet, settings, conv, out, overwrite, reader_options, scheduler)
-            return
-    if loop_paths and (plan is not None or len(sequence) > 1):
-        raise LirisError("--loops", "scores one sequence (a SEQUENCE or --poses)")
-    if loop_paths and len(sequence) <= 1 and plan is None:  # poses alone are enough
-        from lidar_iris_eval.cli.loops_eval import evaluate_loops_cli, open_loops_sequence
-
-        evaluate_loops_cli(open_loops_sequence(sequence[0] if sequence else None,
-                                               reader_options),
-                           loop_paths, loops_format, loops_index_base, loops_gap, settings,
-                           protocols, descriptor_text, out, overwrite, as_json,
-                           {**config_extra(conv), "reader_options": reader_options}, loop_extra)
-        return
-    if plan is not None or len(sequence) != 1:  # several sequences: one folder, a summary
-        if loop_settings.registers or odometry_path is not None or seeds is not None:
-            raise LirisError("--refine/--gt-pose/--odometry/--seeds",
-                             "apply to a single sequence only")
-        _evaluate_many(sequence, plan, protocols, descriptor_text, preset, params, sensor,
-                       cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
-                       as_json, reader_options, scheduler, odometry)
-        return
-    sequence = sequence[0]
-    sensor = resolve_sensor(sensor, lambda: open_input(sequence, reader_options))
-    descriptors = build_descriptors(descriptor_text, preset, sensor, params, odometry) \
-        if descriptor_text else []
-    check_odometry_file(odometry_path, descriptors)
-    if pairs_text is not None:
-        from lidar_iris_eval.cli.pairs_eval import evaluate_pairs_cli
-
-        seq = open_input(sequence, reader_options)
-        for d in descriptors:
-            d.check_inputs(seq)
-        with open_executor(check_scheduler(scheduler), workers) as executor:
-            evaluate_pairs_cli(seq, descriptors, pairs_text, protocols, cache_dir, workers,
-                               quiet, out, overwrite, as_json, executor,
-                               {**config_extra(conv), "sensor": sensor,
-                                "odometry": odometry})
-        return
-    check_request(descriptors, protocols, settings)
-    if export_path is not None:
-        if "1" not in protocols:
-            raise LirisError(f"--export-loops {export_path}", "needs --protocol 1")
-        if export_path.suffix.lower() not in (".g2o", ".tum", ".txt"):
-            raise LirisError(f"--export-loops {export_path}",
-                             "use a .g2o, .tum or .txt file name")
-    seq = open_input(sequence, reader_options)
-    descriptors += externals_for(seq)  # --external NAME=PATH
-    descriptors = bind_exclusion(descriptors, settings.exclude)  # local maps: window = E
-    check_request(descriptors, protocols, settings)
-    for d in descriptors:
-        d.check_inputs(seq)
-    vertices = read_odometry(odometry_path, seq) if odometry_path is not None else None
-    if out is None:
-        out = default_run_dir(seq.name)
-    check_run_dir(out, overwrite)
-    if export_path is not None:
-        check_new_files(loop_export_paths(export_path, [d.name for d in descriptors]),
-                        overwrite, "--export-loops", inputs=[sequence])
-
-    cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
-    with open_executor(check_scheduler(scheduler), workers) as executor:
-        def run_once(descs):
-            return evaluate(seq, descs, protocols, settings, cache=cache, workers=workers,
-                            progress=not quiet, executor=executor, loop_settings=loop_settings,
-                            ranking=ranking, convention_band=convention_band,
-                            dbs=extract_all(seq, descs, cache, workers, quiet, executor))
-
-        if seeds is None:
-            run = run_once(descriptors)
-        else:  # issue 23: stochastic stages once per seed, mean and range in each row
-            from lidar_iris_eval.evaluation.seeds import evaluate_seeds
-
-            run = evaluate_seeds(run_once, descriptors, seeds)
-        engine_info = (executor.describe() if executor.distributes_blocks
-                       else {"scheduler": scheduler})
-    extra = {**config_extra(conv), "engine": engine_info, "odometry": odometry,
-             **({"odometry_file": str(odometry_path)} if odometry_path is not None else {}),
-             **({"seeds": list(seeds)} if seeds is not None else {})}
-    write_run(run, out, overwrite, sensor=sensor, reader_options=reader_options, **extra)
-    if export_path is not None and odometry != "gt":  # the .g2o vertices: the same odometry
-        from lidar_iris_eval.localmaps.odometry import estimate_odometry
-
-        vertices = estimate_odometry(seq, odometry, progress=not quiet).poses
-    exported = export_loops(run, export_path, vertices) if export_path is not None else {}
-    if as_json:
-        echo_json(json_ready({**run.header(run.config(sensor=sensor,
-                                                      reader_options=reader_options, **extra)),
-                              "results": run.rows}))
-        return
-    click.echo(render_table(run.rows, table_format()))
-    band = render_band_table(run.rows, table_format())
-    if band:
-        click.echo(band, err=table_format() != "table")
-    click.echo(  # after a Markdown/LaTeX/CSV table, to stderr: the table stays pasteable
-        f"conventions: radius {settings.radius:g} m, exclude "
-        + (f"E={settings.exclude} ({settings.exclude_name})" if settings.exclude_seconds is None
-           else f"{conv.exclude_seconds:g} s by scan time")
-        + f", {settings.distance} distance, {run.pose_frame}-frame poses, "
-        f"protocol 1 recall denominator '{settings.recall_denominator}', convention "
-        f"{conv.name}; results in {out}", err=table_format() != "table")
-    print_loop_poses(run, loop_settings)
-    for name, (path, count) in exported.items():
-        click.echo(f"{name}: {count} accepted loops written to {path}")
+    externals, external_metric = external_options()
+    return EvalRequest(
+        convention=conv, settings=conv.replace(candidates=candidates, pair_budget=block_pairs),
+        sequences=tuple(sequence), protocols=tuple(protocols), descriptor_text=descriptor_text,
+        preset=preset, params=tuple(params), sensor=sensor, reader_options=reader_options,
+        cache_dir=cache_dir, workers=workers, scheduler=scheduler, quiet=quiet, out=out,
+        overwrite=overwrite, as_json=as_json, fmt=table_format(), plan=plan, query=query_path,
+        database=database_path, align=align_path, pairs_text=pairs_text,
+        loop_paths=tuple(loop_paths), loops_format=loops_format,
+        loops_index_base=loops_index_base, loops_gap=loops_gap, loop_extra=loop_extra,
+        convention_band=convention_band, ranking=ranking, export_path=export_path,
+        loop_settings=loop_settings, odometry=odometry, odometry_path=odometry_path,
+        seeds=seeds, externals=externals, external_metric=external_metric,
+        command_extra=config_extra(conv))
 
 
-def print_loop_poses(run, loop_settings) -> None:
-    """The loop-pose table (registration recall, refined errors, registration time), and
-    one n/a line per method that has no point clouds to register."""
-    from lidar_iris_eval.runs.loop_table import render_loop_table, render_seed_table
+def mode_of(request: EvalRequest) -> str:
+    """The mode of :data:`MODE_RUNNERS` a request asks for.
 
-    for text in (render_loop_table(run.rows, table_format()),
-                 render_seed_table(run.rows, table_format())):
-        if text:
-            click.echo(text, err=table_format() != "table")
-    for row in run.rows:
-        for key in ("refine_note", "gt_pose_note"):
-            if row.get(key):
-                click.echo(f"{row['descriptor']}: {row[key]}")
-
-
-def _within_sequence_odometry(odometry: str) -> None:
-    """Refuse an estimated odometry where local maps are not built (cross-session runs)."""
-    if odometry != "gt":
-        raise LirisError(f"--odometry {odometry}", "applies to within-sequence runs (a "
-                                                  "SEQUENCE or a plan of sequences)")
-
-
-def _evaluate_many(sequences, plan, protocols, descriptor_text, preset, params, sensor,
-                   cache_dir, workers, quiet, settings, conv, out, overwrite, export_path,
-                   as_json, reader_options, scheduler, odometry: str = "gt") -> None:
-    """SEQUENCE... or --plan: :func:`lidar_iris_eval.cli.eval_many.evaluate_many`."""
-    from lidar_iris_eval.cli.eval_many import evaluate_many
-    from lidar_iris_eval.runs.plan import read_plan, runs_from_sequences
-
-    if plan is not None and sequences:
-        raise LirisError("--plan", "give either sequences or --plan FILE, not both")
-    if plan is None and not sequences:
-        raise LirisError("SEQUENCE", "give a sequence, several, or --plan FILE")
-    if export_path is not None or as_json:
-        raise LirisError("--export-loops/--json", "apply to a single sequence only")
-    runs = (read_plan(plan, descriptor_text, protocols) if plan is not None
-            else runs_from_sequences(sequences, descriptor_text, protocols))
-    cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
-    evaluate_many(runs, settings=settings, conv=conv, cache=cache, workers=workers, quiet=quiet,
-                  preset=preset, sensor=sensor, params=params, reader_options=reader_options,
-                  scheduler=scheduler, out=out, overwrite=overwrite, odometry=odometry)
+    The order is the precedence of the options: any of ``--query``,
+    ``--database`` or ``--align`` makes a cross-session run (which then refuses
+    a SEQUENCE or a plan); a plan file without a SEQUENCE that lists
+    query/database pairs is a plan of sessions; ``--loops`` scores loop files;
+    a plan or not exactly one SEQUENCE is a run of many sequences; ``--pairs``
+    scores a pair list; the rest is one sequence.
+    """
+    if not request.within:
+        return "sessions"
+    if request.plan is not None and not request.sequences and is_sessions_plan(request.plan):
+        return "sessions-plan"
+    if request.loop_paths:
+        return "loops"
+    if request.plan is not None or len(request.sequences) != 1:
+        return "many"
+    if request.pairs_text is not None:
+        return "pairs"
+    return "sequence"
 
 
-__all__ = ["command", "loop_export_paths"]
+#: each mode of ``liris eval``: a function of the request that checks what it needs
+MODE_RUNNERS = {"sequence": run_sequence, "many": run_many, "sessions": run_sessions,
+                "sessions-plan": run_sessions_plan, "pairs": run_pairs, "loops": run_loops}
+
+
+__all__ = ["MODE_RUNNERS", "build_request", "command", "loop_export_paths", "mode_of"]

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import click
 
+from lidar_iris_eval.cli.eval_request import EvalRequest
 from lidar_iris_eval.cli.output import format_table
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.executor import check_scheduler, open_executor
@@ -30,9 +31,26 @@ from lidar_iris_eval.runs.plan import (
 )
 
 
-def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int, quiet: bool,
-                  preset, sensor, params, reader_options: dict, scheduler: str,
-                  out: Path | None, overwrite: bool, odometry: str = "gt") -> Path:
+def run_many(req: EvalRequest) -> Path:
+    """SEQUENCE... or ``--plan``: every planned run into one folder (the mode ``many``)."""
+    from lidar_iris_eval.runs.plan import read_plan, runs_from_sequences
+
+    req.refuse_convention_band()
+    if req.loop_settings.registers or req.odometry_path is not None or req.seeds is not None:
+        raise LirisError("--refine/--gt-pose/--odometry/--seeds",
+                         "apply to a single sequence only")
+    if req.plan is not None and req.sequences:
+        raise LirisError("--plan", "give either sequences or --plan FILE, not both")
+    if req.plan is None and not req.sequences:
+        raise LirisError("SEQUENCE", "give a sequence, several, or --plan FILE")
+    if req.export_path is not None or req.as_json:
+        raise LirisError("--export-loops/--json", "apply to a single sequence only")
+    runs = (read_plan(req.plan, req.descriptor_text, req.protocols) if req.plan is not None
+            else runs_from_sequences(req.sequences, req.descriptor_text, req.protocols))
+    return evaluate_many(runs, req)
+
+
+def evaluate_many(runs: list[PlannedRun], req: EvalRequest) -> Path:
     """Evaluate every planned run under one scheduler; returns the parent folder."""
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
     from lidar_iris_eval.cli.workflow import extract_all
@@ -40,6 +58,9 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
     from lidar_iris_eval.ownership import check_replaceable, replace_folder, write_manifest
     from lidar_iris_eval.runs.writer import RUN_KINDS, check_run_dir, default_run_dir, write_run
 
+    settings, cache, workers, quiet = req.settings, req.cache(), req.workers, req.quiet
+    scheduler, sensor, reader_options = req.scheduler, req.sensor, req.reader_options
+    overwrite, odometry = req.overwrite, req.odometry
     check_scheduler(scheduler)
     # everything is validated before any work: paths, descriptors, protocols, inputs
     prepared = []
@@ -47,12 +68,13 @@ def evaluate_many(runs: list[PlannedRun], *, settings, conv, cache, workers: int
         if not run.sequence.exists():
             raise LirisError(str(run.sequence), "no such sequence")
         seq = open_input(run.sequence, reader_options)
-        descriptors = build_descriptors(run.descriptors, preset, sensor, params, odometry)
+        descriptors = build_descriptors(run.descriptors, req.preset, sensor, req.params,
+                                        odometry)
         protocols = check_request(descriptors, run.protocols, settings)
         for d in descriptors:
             d.check_inputs(seq)
         prepared.append((seq, descriptors, protocols))
-    out = Path(out) if out is not None else default_run_dir("multi")
+    out = Path(req.out) if req.out is not None else default_run_dir("multi")
     check_run_dir(out, overwrite)
     names = run_folder_names(runs, [seq.name for seq, _, _ in prepared])
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")

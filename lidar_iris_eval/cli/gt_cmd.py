@@ -10,13 +10,14 @@ import numpy as np
 from tqdm import tqdm
 
 from lidar_iris_eval.atomic import figure_format
-from lidar_iris_eval.cli.options import current_convention, ground_truth_options, parse_exclude
+from lidar_iris_eval.cli.options import current_convention, ground_truth_options
 from lidar_iris_eval.cli.output import check_output_file, echo_json, echo_table, format_value
 from lidar_iris_eval.cli.sequence_options import sequence_options
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.errors import options as option_names
-from lidar_iris_eval.evaluation.conventions import convention_counts, with_overrides
+from lidar_iris_eval.evaluation.conventions import convention_counts
 from lidar_iris_eval.evaluation.ground_truth import compute_ground_truth
+from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.io.poses import camera_to_lidar, read_calib, read_pose_file
 from lidar_iris_eval.ownership import check_new_files
 
@@ -72,17 +73,20 @@ def command(sequence, poses_path, calib_path, radius, exclude, distance, pose_fr
                                 diff_plot, overwrite, as_json, reader_options)
     if diff_csv is not None or diff_plot is not None:
         raise LirisError("--diff-csv/--diff-plot", "only with --diff A B")
-    conv = current_convention()  # --convention (issue 17): per-query rules, windows in seconds
+    # --convention (issue 17) and the ground-truth options, parsed once (Settings.from_options)
+    conv = current_convention()
     seconds = conv.exclude_seconds is not None
-    exclude_frames, exclude_name = (1, "seconds") if seconds else parse_exclude(exclude)
+    exclude_frames, exclude_name = (1, "seconds") if seconds else (conv.exclude,
+                                                                    conv.exclude_name)
     positions, source, seq, pose_frame = _positions(
-        sequence, poses_path, calib_path, pose_frame, reader_options
+        sequence, poses_path, calib_path, conv.pose_frame, reader_options
     )
-    gt = compute_ground_truth(positions, radius, exclude_frames, distance, pose_frame)
+    gt = compute_ground_truth(positions, conv.radius, exclude_frames, conv.distance, pose_frame)
     if exclude_name == "custom" and conv.name not in ("liris", "custom"):
         exclude_name = f"convention {conv.name}"  # E came from the convention, not from --exclude
     summary = {"source": str(source), **gt.summary(), "exclude_preset": exclude_name}
-    conv = with_overrides(conv, pose_frame=pose_frame)
+    if pose_frame != conv.pose_frame:  # the sequence has LiDAR poses only: merged like an option
+        conv = Settings.from_options(conv, pose_frame=pose_frame)
     counts = convention_counts(positions, conv, getattr(seq, "times", None))
     if conv.name == "liris":  # gt.summary() already counted; keep its numbers, add the keys
         counts = {k: v for k, v in counts.items() if k not in summary}

@@ -10,8 +10,8 @@ import functools
 
 import click
 
+from lidar_iris_eval.cli.eval_request import EvalRequest
 from lidar_iris_eval.cli.output import echo_json
-from lidar_iris_eval.cli.workflow import table_format
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.runs.table import render_table
 from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir, json_ready, write_run
@@ -81,30 +81,34 @@ def open_loops_sequence(sequence, reader_options: dict):
                               reader_options.get("pose_format") or "auto")
 
 
-def evaluate_loops_cli(seq, loop_paths, loop_format, index_base, gap, settings, protocols,
-                       descriptor_text, out, overwrite, as_json, extra,
-                       loop_extra: dict | None = None) -> None:
-    """Score, write and print a loops run."""
+def run_loops(req: EvalRequest) -> None:
+    """Score, write and print a loops run (the mode ``loops``: one SEQUENCE or ``--poses``)."""
     from lidar_iris_eval.evaluation.external_loops import evaluate_loops, loop_scores
 
-    if descriptor_text:
+    req.refuse_convention_band()
+    if req.plan is not None or len(req.sequences) > 1:
+        raise LirisError("--loops", "scores one sequence (a SEQUENCE or --poses)")
+    if req.descriptor_text:
         raise LirisError("--loops", "score loop files or descriptors, not both in one run")
-    if protocols and tuple(protocols) != ("1",):
+    if req.protocols and tuple(req.protocols) != ("1",):
         raise LirisError("--protocol", "loops are scored by protocol 1 only")
+    seq = open_loops_sequence(req.sequences[0] if req.sequences else None, req.reader_options)
+    out, overwrite, fmt = req.out, req.overwrite, req.fmt
+    extra = {**req.config_extra(), "reader_options": req.reader_options}
     if out is None:
         out = default_run_dir(f"{seq.name}-loops")
     check_run_dir(out, overwrite)
-    run = evaluate_loops(seq, list(loop_paths), settings, formats=loop_format,
-                         index_base=index_base, gap=gap, **(loop_extra or {}))
+    run = evaluate_loops(seq, list(req.loop_paths), req.settings, formats=req.loops_format,
+                         index_base=req.loops_index_base, gap=req.loops_gap, **req.loop_extra)
     write_run(run, out, overwrite, **extra)
-    if as_json:
+    if req.as_json:
         echo_json(json_ready({**run.header(run.config(**extra)), "results": run.rows}))
         return
-    click.echo(render_table(run.rows, table_format()))
-    err = table_format() != "table"
+    click.echo(render_table(run.rows, fmt))
+    err = fmt != "table"
     from lidar_iris_eval.runs.loop_table import render_loops_table
 
-    click.echo(render_loops_table(run.rows, table_format()), err=err)
+    click.echo(render_loops_table(run.rows, fmt), err=err)
     for row in run.rows:
         coverage = row["revisit_coverage"]
         click.echo(f"{row['descriptor']}: {row['n_loops']} loops, {row['loops_tp']} TP / "

@@ -5,11 +5,13 @@ from __future__ import annotations
 import click
 import numpy as np
 
-from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
+from lidar_iris_eval.cli.descriptor_options import open_input
+from lidar_iris_eval.cli.eval_request import EvalRequest
 from lidar_iris_eval.cli.output import echo_json
-from lidar_iris_eval.cli.workflow import table_format
+from lidar_iris_eval.cli.sequence_eval import sequence_descriptors
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.evaluation.metrics import SUMMARY_KEYS
+from lidar_iris_eval.executor import check_scheduler, open_executor
 from lidar_iris_eval.runs.table import render_table
 from lidar_iris_eval.runs.writer import (
     RunWriter,
@@ -21,25 +23,36 @@ from lidar_iris_eval.runs.writer import (
 )
 
 
-def evaluate_pairs_cli(seq, descriptors, pairs_text, protocols, cache_dir, workers, quiet, out,
-                       overwrite, as_json, executor, extra) -> None:
-    """Score, write and print a pair-list run."""
+def run_pairs(req: EvalRequest) -> None:
+    """Score, write and print a pair-list run (the mode ``pairs`` of one SEQUENCE)."""
+    req.refuse_convention_band()
+    if req.protocols:
+        raise LirisError("--protocol", "does not apply to --pairs (the list says which pairs "
+                                       "count)")
+    sensor, descriptors = sequence_descriptors(req)
+    seq = open_input(req.sequences[0], req.reader_options)
+    for d in descriptors:
+        d.check_inputs(seq)
+    with open_executor(check_scheduler(req.scheduler), req.workers) as executor:
+        _score_pairs(req, seq, descriptors, executor,
+                     {**req.config_extra(), "sensor": sensor, "odometry": req.odometry})
+
+
+def _score_pairs(req: EvalRequest, seq, descriptors, executor, extra: dict) -> None:
+    """Score the pair list with every descriptor; write the run folder and print it."""
     from lidar_iris_eval import __version__
     from lidar_iris_eval.config import params_dict
     from lidar_iris_eval.evaluation import metrics as m
     from lidar_iris_eval.evaluation.pairs import evaluate_pair_list
     from lidar_iris_eval.evaluation.pairs import pairs_text as as_text
 
-    if protocols:
-        raise LirisError("--protocol", "does not apply to --pairs (the list says which pairs "
-                                       "count)")
+    out, overwrite, fmt = req.out, req.overwrite, req.fmt
     if out is None:
         out = default_run_dir(f"{seq.name}-pairs")
     check_run_dir(out, overwrite)
-    cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
-    pairs, results, info = evaluate_pair_list(seq, descriptors, pairs_text, cache=cache,
-                                              workers=workers, progress=not quiet,
-                                              executor=executor)
+    pairs, results, info = evaluate_pair_list(seq, descriptors, req.pairs_text,
+                                              cache=req.cache(), workers=req.workers,
+                                              progress=not req.quiet, executor=executor)
     rows = []
     for desc, db, res in results:
         rows.append({"protocol": "pairs", "descriptor": desc.name, "preset": desc.preset,
@@ -71,10 +84,10 @@ def evaluate_pairs_cli(seq, descriptors, pairs_text, protocols, cache_dir, worke
                 "distance": np.asarray(res.distance)})
         writer.write_yaml("config.yaml", config)
         write_metrics(writer, header, rows)
-    if as_json:
+    if req.as_json:
         echo_json(json_ready({**header, "results": rows}))
         return
-    click.echo(render_table(rows, table_format()))
+    click.echo(render_table(rows, fmt))
     click.echo(f"pair list: {info['pair_list']} ({len(pairs)} pairs, "
                f"{int(np.count_nonzero(pairs[:, 2]))} positive); results in {out}",
-               err=table_format() != "table")
+               err=fmt != "table")

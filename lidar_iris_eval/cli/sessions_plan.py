@@ -28,6 +28,7 @@ from pathlib import Path
 import click
 import yaml
 
+from lidar_iris_eval.cli.eval_request import EvalRequest
 from lidar_iris_eval.errors import LirisError
 
 SESSION_PLAN_KEYS = {"pairs", "sessions"}
@@ -99,12 +100,10 @@ def _mean(values):
     return sum(values) / len(values) if values else None
 
 
-def run_sessions_plan(plan: Path, descriptor_text, preset, params, sensor, cache_dir, workers,
-                      quiet, settings, conv, out, overwrite, reader_options, scheduler) -> None:
-    """Evaluate every pair into ``out/NN-<query>-vs-<database>/`` and write the summary."""
-    from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
+def run_sessions_plan(req: EvalRequest) -> None:
+    """Evaluate every pair of the plan into ``out/NN-<query>-vs-<database>/`` and write the
+    summary (the mode ``sessions-plan``)."""
     from lidar_iris_eval.cli.descriptor_options import build_descriptors, open_input
-    from lidar_iris_eval.cli.workflow import config_extra
     from lidar_iris_eval.evaluation.cross_session import read_transform
     from lidar_iris_eval.evaluation.sessions_run import evaluate_cross_session
     from lidar_iris_eval.executor import check_scheduler, open_executor
@@ -113,25 +112,33 @@ def run_sessions_plan(plan: Path, descriptor_text, preset, params, sensor, cache
     from lidar_iris_eval.runs.table import cell
     from lidar_iris_eval.runs.writer import check_run_dir, default_run_dir
 
-    entries = read_sessions_plan(plan, descriptor_text)
-    out = Path(out) if out is not None else default_run_dir(Path(plan).stem)
-    check_run_dir(out, overwrite)
-    cache = DescriptorCache(cache_dir if cache_dir is not None else default_cache_dir())
+    req.refuse_convention_band()
+    req.refuse_estimated_odometry()
+    if req.protocols:
+        raise LirisError("--protocol", "does not apply to a plan of query/database pairs")
+    plan = req.plan
+    entries = read_sessions_plan(plan, req.descriptor_text)
+    out = Path(req.out) if req.out is not None else default_run_dir(Path(plan).stem)
+    check_run_dir(out, req.overwrite)
+    cache = req.cache()
     rows = []
-    with open_executor(check_scheduler(scheduler), workers) as executor:
+    with open_executor(check_scheduler(req.scheduler), req.workers) as executor:
         for k, entry in enumerate(entries):
-            query = open_input(entry["query"], reader_options)
-            database = open_input(entry["database"], reader_options)
-            descriptors = build_descriptors(entry["descriptors"], preset, sensor, params)
+            query = open_input(entry["query"], req.reader_options)
+            database = open_input(entry["database"], req.reader_options)
+            descriptors = build_descriptors(entry["descriptors"], req.preset, req.sensor,
+                                            req.params)
             for d in descriptors:
                 d.check_inputs(query)
                 d.check_inputs(database)
             transform = read_transform(entry["align"]) if entry["align"] is not None else None
-            run = evaluate_cross_session(query, database, descriptors, settings,
-                                         transform=transform, cache=cache, workers=workers,
-                                         progress=not quiet, executor=executor)
+            run = evaluate_cross_session(query, database, descriptors, req.settings,
+                                         transform=transform, cache=cache,
+                                         workers=req.workers, progress=not req.quiet,
+                                         executor=executor)
             folder = out / f"{k:02d}-{query.name}-vs-{database.name}"
-            write_cross_session(run, folder, overwrite, **config_extra(conv), sensor=sensor)
+            write_cross_session(run, folder, req.overwrite, **req.config_extra(),
+                                sensor=req.sensor)
             for row in run.rows:
                 rows.append({"query": query.name, "database": database.name,
                              **{c: row.get(c) for c in SUMMARY[2:]}})

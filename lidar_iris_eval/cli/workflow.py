@@ -9,7 +9,7 @@
 * ``--format``: print the summary table as an aligned table, Markdown,
   LaTeX or CSV (the same function as ``liris show``).
 
-The command body reads them back with :func:`externals_for`,
+The command body reads them back with :func:`external_options`,
 :func:`table_format` and :func:`config_extra`.
 """
 
@@ -108,15 +108,20 @@ def _meta() -> dict:
     return click.get_current_context().meta.get(_META, {})
 
 
-def externals_for(seq) -> list:
-    """The ``--external`` descriptors, loaded and checked against ``seq``'s scan count."""
+def external_options() -> tuple[tuple[str, ...], str | None]:
+    """The running command's ``--external NAME=PATH`` specs and ``--external-metric``."""
+    meta = _meta()
+    return tuple(meta.get("externals", [])), meta.get("external_metric")
+
+
+def load_externals(specs, metric: str | None, seq) -> list:
+    """External descriptors from ``NAME=PATH`` specs, checked against ``seq``'s scan count."""
     from lidar_iris_eval.descriptors.external import load_external, parse_external_spec
 
-    meta = _meta()
     out = []
-    for spec in meta.get("externals", []):
+    for spec in specs:
         name, path = parse_external_spec(spec)
-        out.append(load_external(name, path, len(seq), meta.get("external_metric")))
+        out.append(load_external(name, path, len(seq), metric))
     return out
 
 

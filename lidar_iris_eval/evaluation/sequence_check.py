@@ -189,8 +189,13 @@ def _check_stamps(report: CheckReport, times: np.ndarray, what: str, limits: Che
     return median
 
 
-def pseudo_revisits(positions: np.ndarray, exclude: int = 30) -> tuple[np.ndarray, np.ndarray]:
+def pseudo_revisits(positions: np.ndarray, exclude: int | str = 30
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Revisit queries at E = ``exclude`` under the ``liris`` preset, and the pseudo ones.
+
+    ``exclude`` is frames or a named window (``"paper"``, ``"reference"``),
+    merged into the preset by :meth:`Settings.from_options`, the one parse of
+    a window, so a bad value is the same one-line error as on the command line.
 
     A revisit query ``i`` is *pseudo* when none of its database partners
     (``j <= i - E`` within the radius) lies before the last frame ``k < i``
@@ -203,14 +208,15 @@ def pseudo_revisits(positions: np.ndarray, exclude: int = 30) -> tuple[np.ndarra
     """
     from scipy.spatial import cKDTree
 
-    from lidar_iris_eval.evaluation.conventions import PRESETS, with_overrides
+    from lidar_iris_eval.evaluation.conventions import PRESETS
     from lidar_iris_eval.evaluation.ground_truth import (
         database_limits,
         gt_coordinates,
         revisit_queries_within,
     )
+    from lidar_iris_eval.evaluation.settings import Settings
 
-    conv = with_overrides(PRESETS["liris"], exclude=int(exclude))
+    conv = Settings.from_options(PRESETS["liris"], exclude=exclude)
     coords = gt_coordinates(positions, "camera", conv.distance)  # 3-D: the frame only names axes
     n = len(coords)
     limits = database_limits(n, conv)

@@ -15,7 +15,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from lidar_iris_eval.errors import LirisError, warn
 
@@ -83,6 +82,8 @@ def slerp_matrices(r0: np.ndarray, r1: np.ndarray, alpha: np.ndarray) -> np.ndar
     bit for bit (no round trip through quaternions).
     """
     relative = np.einsum("nji,njk->nik", r0, r1)
+    from scipy.spatial.transform import Rotation  # deferred: io.datasets imports this at start
+
     rotvec = Rotation.from_matrix(relative).as_rotvec()
     step = Rotation.from_rotvec(alpha[:, None] * rotvec).as_matrix()
     return r0 @ step

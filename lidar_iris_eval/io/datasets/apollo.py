@@ -21,6 +21,7 @@ from lidar_iris_eval.io.datasets.base import (
     read_table,
     se3,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_file
 from lidar_iris_eval.io.pcd import read_pcd
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -51,3 +52,25 @@ def open_apollo(path: Path, poses=None, calib=None, tolerance=None, **options) -
     return build("apollo", seq_dir, f"{seq_dir.parent.name}-{seq_dir.name}", pick(scans, keep),
                  lidar, read_pcd, "hdl64", f"{pose_path} (LiDAR frame)", times=rows[:, 1],
                  unmatched=dropped, frame_ids=numbers[keep])
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def _apollo(path: Path) -> bool:
+    return has_file(path, "poses", "gt_poses.txt") or (
+        path.name == "pcds" and has_file(path.parent, "poses", "gt_poses.txt"))
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "apollo", "Apollo-SouthBay",
+        "<route>/<date>/pcds/<n>.pcd + <route>/<date>/poses/gt_poses.txt",
+        "LiDAR frame (index, time, x, y, z, qx, qy, qz, qw)",
+        "pose by the index column = pcd file number; no extrinsic",
+        "hdl64", "poses/gt_poses.txt",
+        _apollo, "apollo:open_apollo",
+        frame="LiDAR frame, z up: kept",
+        intensity="the PCD's intensity field as stored, else none"),
+)

@@ -17,8 +17,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+# scipy.spatial.transform is imported where a rotation is built: every reader module imports
+# this one when `liris` starts (their SPECS), and scipy's import is most of that start
 from lidar_iris_eval.errors import LirisError, read_text
 from lidar_iris_eval.io.poses import check_finite, is_number
 from lidar_iris_eval.io.scans import Scan
@@ -163,6 +164,8 @@ def se3(rotation: np.ndarray, translation) -> np.ndarray:
 def rpy_zyx(roll, pitch, yaw) -> np.ndarray:
     """``Rz(yaw) · Ry(pitch) · Rx(roll)`` (radians), the x-y-z Euler convention of NCLT,
     the Oxford SDK and MulRan's calibration files; vectorised."""
+    from scipy.spatial.transform import Rotation  # deferred: see the module's imports
+
     angles = np.column_stack([np.atleast_1d(roll), np.atleast_1d(pitch), np.atleast_1d(yaw)])
     return Rotation.from_euler("xyz", angles).as_matrix()
 
@@ -174,6 +177,8 @@ def quat_xyzw(q: np.ndarray, source: str | Path) -> np.ndarray:
     if np.any(norms < 1e-9) or not np.all(np.isfinite(q)):
         bad = int(np.argmax((norms < 1e-9) | ~np.isfinite(q).all(axis=1)))
         raise LirisError(source, f"zero or non-finite quaternion in pose row {bad + 1}")
+    from scipy.spatial.transform import Rotation  # deferred: see the module's imports
+
     return Rotation.from_quat(q / norms[:, None]).as_matrix()
 
 

@@ -26,6 +26,7 @@ from lidar_iris_eval.io.datasets.base import (
     se3,
     stem_stamps,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_file
 from lidar_iris_eval.io.scans import Scan, clean_points
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -74,3 +75,25 @@ def open_boreas(path: Path, poses=None, calib=None, tolerance: float = TOLERANCE
     return build("boreas", seq_dir, seq_dir.name, pick(scans, keep), matched, read_boreas_scan,
                  None, f"{pose_path} (LiDAR frame, ENU)", times=stamps[keep] * 1e-6,
                  unmatched=dropped, frame_ids=keep)
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def _boreas(path: Path) -> bool:
+    return has_file(path, "applanix", "lidar_poses.csv") or (
+        path.name == "lidar" and has_file(path.parent, "applanix", "lidar_poses.csv"))
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "boreas", "Boreas",
+        "<seq>/lidar/<µs>.bin + <seq>/applanix/lidar_poses.csv",
+        "LiDAR frame in ENU (GPSTime µs, x, y, z, …, roll, pitch, yaw)",
+        "float32 × 6 records; pyboreas rotation convention; pose at each scan stamp",
+        None, "applanix/lidar_poses.csv",
+        _boreas, "boreas:open_boreas",
+        frame="Velodyne Alpha Prime frame, z up: kept",
+        intensity="the record's fourth f32, as stored"),
+)

@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.io.datasets import HELIPR_SENSORS, helipr_sensor
 from lidar_iris_eval.io.datasets.base import (
     build,
     check_options,
@@ -41,6 +40,7 @@ from lidar_iris_eval.io.datasets.base import (
     se3,
     stem_stamps,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec
 from lidar_iris_eval.io.scans import Scan, clean_points
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -61,6 +61,7 @@ RECORDS = {
 }
 #: Aeva files stamped after this (ns) carry the trailing f32 intensity (29-byte records)
 AEVA_INTENSITY_AFTER = 1691936557946849179
+HELIPR_SENSORS = ("Ouster", "Velodyne", "Aeva", "Avia")
 SENSOR_PRESETS = {"Ouster": "os2-128", "Velodyne": "vlp16", "Aeva": None, "Avia": "avia"}
 #: seconds between a scan stamp and the nearest ground-truth row (one row per scan)
 TOLERANCE = 0.05
@@ -123,3 +124,33 @@ def open_helipr(path: Path, poses=None, calib=None, tolerance: float = TOLERANCE
                  functools.partial(read_helipr_scan, sensor=sensor), SENSOR_PRESETS[sensor],
                  f"{pose_path} ({sensor} frame)", times=ns_to_seconds(stamps[keep], 10**9),
                  unmatched=dropped, frame_ids=keep)
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def helipr_sensor(path: Path) -> str | None:
+    """The HeLiPR sensor name when ``path`` is ``<seq>/LiDAR/<Sensor>``, else None."""
+    if path.name in HELIPR_SENSORS and path.parent.name == "LiDAR" and path.is_dir():
+        return path.name
+    return None
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "helipr", "HeLiPR",
+        "<seq>/LiDAR/{Ouster,Velodyne,Aeva,Avia} (open the sensor folder); "
+        "<seq>/LiDAR_GT/global_<Sensor>_gt.txt",
+        "LiDAR frame of that sensor, t (ns) x y z qx qy qz qw",
+        "packed records per sensor (26/22/25-or-29/19 B; Aeva 29 B after stamp "
+        "1691936557946849179); pose at each scan stamp",
+        "os2-128 (Ouster), vlp16 (Velodyne), avia (Avia), none (Aeva)",
+        "a sensor folder under LiDAR/",
+        lambda p: helipr_sensor(p) is not None, "helipr:open_helipr",
+        frame="each sensor's own frame, z up: kept",
+        intensity=("Ouster, Velodyne: the f32 intensity field as stored; Avia: u8 reflectivity "
+                   "(0..255); Aeva 25 B (up to stamp 1691936557946849179): the f32 reflectivity "
+                   "field; Aeva 29 B: the trailing f32 intensity as stored, negative and dB-like "
+                   "(about −73..−27 on real files)")),
+)

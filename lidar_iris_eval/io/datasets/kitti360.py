@@ -15,13 +15,14 @@ The LiDAR pose is ``T · cam0_to_pose · inv(cam_to_velo)`` with
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, read_text, warn
-from lidar_iris_eval.io.datasets import kitti360_drive
 from lidar_iris_eval.io.datasets.base import build, check_options, list_files, pick, read_table
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_dir
 from lidar_iris_eval.io.poses import to_homogeneous
 from lidar_iris_eval.io.scans import read_kitti_bin
 from lidar_iris_eval.io.sequence import Sequence
@@ -124,3 +125,33 @@ def open_kitti360(path: Path, poses=None, calib=None, tolerance: float | None = 
                  f"{pose_path} (IMU, interpolated) · cam0_to_pose · inv(cam_to_velo)",
                  times=None if times is None else times[keep], unmatched=dropped,
                  frame_ids=frames[keep])
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+_KITTI360_DRIVE = re.compile(r"^\d{4}_\d{2}_\d{2}_drive_\d{4}_sync$")
+
+
+def kitti360_drive(path: Path) -> Path | None:
+    """The ``<date>_drive_<NNNN>_sync`` folder of a KITTI-360 path, or None."""
+    for candidate in (path, path.parent, path.parent.parent):
+        if _KITTI360_DRIVE.match(candidate.name) and has_dir(candidate, "velodyne_points"):
+            return candidate
+    return None
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "kitti360", "KITTI-360",
+        "KITTI-360/data_3d_raw/<date>_drive_<NNNN>_sync (velodyne_points/data/%010d.bin); "
+        "data_poses/<drive>/poses.txt and calibration/ beside data_3d_raw",
+        "IMU/GPS → world, only for some frames (frame index + 3×4)",
+        "interpolated to every LiDAR frame by frame index (slerp + linear; frames outside the "
+        "posed range dropped), then T · cam0_to_pose · inv(cam_to_velo)",
+        "hdl64", "a *_drive_NNNN_sync folder with velodyne_points/",
+        lambda p: kitti360_drive(p) is not None, "kitti360:open_kitti360",
+        frame="Velodyne HDL-64E, x forward, y left, z up: kept",
+        intensity="the file's reflectance (f32, 0..1), as stored"),
+)

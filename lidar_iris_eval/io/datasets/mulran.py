@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.io.datasets import mulran_sequence
 from lidar_iris_eval.io.datasets.base import (
     build,
     check_options,
@@ -31,6 +30,7 @@ from lidar_iris_eval.io.datasets.base import (
     se3,
     stem_stamps,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_dir, has_file
 from lidar_iris_eval.io.scans import read_kitti_bin
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -75,3 +75,31 @@ def open_mulran(path: Path, poses: str | Path | None = None, calib=None,
     return build("mulran", seq_dir, seq_dir.name, pick(scans, keep), lidar, read_kitti_bin,
                  "os1-64-gen1", f"{pose_path} (base frame) · T_base_ouster",
                  times=ns_to_seconds(scan_ns[keep], 10**9), unmatched=dropped, frame_ids=keep)
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def mulran_sequence(path: Path) -> Path | None:
+    """The MulRan sequence folder (holding ``Ouster/``) of a path, or None."""
+    if path.name == "Ouster" and has_file(path.parent, "global_pose.csv"):
+        return path.parent
+    if has_dir(path, "Ouster") and has_file(path, "global_pose.csv"):
+        return path
+    return None
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "mulran", "MulRan",
+        "<Seq>/Ouster/<ns>.bin + <Seq>/global_pose.csv (open <Seq> or <Seq>/Ouster)",
+        "vehicle base frame, ns stamps, more rows than scans",
+        "each scan gets the pose at its stamp (interpolated, named tolerance); "
+        "T_base · T_base_ouster (calib_base2ouster.txt)",
+        "os1-64-gen1", "Ouster/ beside global_pose.csv",
+        lambda p: mulran_sequence(p) is not None, "mulran:open_mulran",
+        frame=("Ouster OS1-64, z up: kept (its x points backwards on the car, base → Ouster yaw "
+               "179.67°; not turned)"),
+        intensity="the file's fourth f32 (Ouster intensity, raw counts), as stored"),
+)

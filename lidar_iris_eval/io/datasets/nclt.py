@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError
-from lidar_iris_eval.io.datasets import nclt_hits_file, nclt_session
 from lidar_iris_eval.io.datasets.base import (
     build,
     check_options,
@@ -48,6 +47,7 @@ from lidar_iris_eval.io.datasets.base import (
     se3,
     stem_stamps,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_dir, has_file
 from lidar_iris_eval.io.scans import Scan, clean_points
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -246,3 +246,50 @@ def open_nclt_hits(path: Path, poses=None, calib=None, tolerance: float = TOLERA
                  read_hits_scan, "hdl32", f"{pose_path} (body frame) · T_body_velodyne",
                  times=utime[keep] * 1e-6, unmatched=dropped,
                  records=[records[i] for i in keep], frame_ids=keep, to_liris=TO_LIRIS)
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def nclt_session(path: Path) -> Path | None:
+    """The NCLT ``<date>`` folder when ``path`` is it (with velodyne_sync/) or velodyne_sync/."""
+    if path.name == "velodyne_sync" and path.is_dir():
+        return path.parent
+    if has_dir(path, "velodyne_sync"):
+        return path
+    return None
+
+
+def nclt_hits_file(path: Path) -> Path | None:
+    """``velodyne_hits.bin`` itself, or inside ``path``."""
+    if path.name == "velodyne_hits.bin" and path.is_file():
+        return path
+    if has_file(path, "velodyne_hits.bin"):
+        return path / "velodyne_hits.bin"
+    return None
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "nclt", "NCLT (velodyne_sync)",
+        "<date>/velodyne_sync/<utime>.bin; ground_truth/groundtruth_<date>.csv in <date>, "
+        "beside it or in ../ground_truth",
+        "body frame (z down), utime µs, x y z roll pitch yaw",
+        "uint16 coordinates (·0.005 − 100 m, never int16); pose at each scan stamp; "
+        "T_body · T_body_velodyne",
+        "hdl32", "velodyne_sync/",
+        lambda p: nclt_session(p) is not None, "nclt:open_nclt_sync",
+        frame=("Velodyne frame x left, y forward, z down → turned to x forward, y left, z up (x' "
+               "= y, y' = x, z' = −z); poses turned alike"),
+        intensity="the u8 intensity byte (0..255)"),
+    DatasetSpec(
+        "nclt-hits", "NCLT (raw velodyne_hits.bin)",
+        "<date>/velodyne_hits.bin (open the file or <date>); ground truth as for nclt",
+        "body frame (z down), utime µs",
+        "packets split into revolutions at the ±180° azimuth wrap; as nclt otherwise",
+        "hdl32", "velodyne_hits.bin",
+        lambda p: nclt_hits_file(p) is not None, "nclt:open_nclt_hits",
+        frame="as nclt: turned from x left, y forward, z down to x forward, y left, z up",
+        intensity="the u8 intensity byte (0..255)"),
+)

@@ -25,6 +25,7 @@ from lidar_iris_eval.io.datasets.base import (
     read_table,
     se3,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_file
 from lidar_iris_eval.io.pcd import read_pcd
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -64,3 +65,27 @@ def open_newer_college(path: Path, poses=None, calib=None, tolerance: float = TO
     return build("newer-college", root, root.name, pick(scans, keep), matched @ base_to_lidar(),
                  read_pcd, "os1-64-gen1", f"{pose_path} (base frame) · T_CL", times=times[keep],
                  unmatched=dropped, frame_ids=keep)
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def _newer_college(path: Path) -> bool:
+    return has_file(path, "ground_truth", "registered_poses.csv") or (
+        path.name == "ouster_scan" and path.parent.name == "raw_format")
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "newer-college", "Newer College 2020",
+        "<root>/raw_format/ouster_scan/cloud_<sec>_<nsec>.pcd + "
+        "<root>/ground_truth/registered_poses.csv",
+        "base frame, sec,nsec,x,y,z,qx,qy,qz,qw",
+        "pose at each scan stamp; T_base · T_CL (q = 0, 0, 0.924, 0.383; "
+        "t = −0.084, −0.025, 0.050)",
+        "os1-64-gen1", "ground_truth/registered_poses.csv",
+        _newer_college, "newer_college:open_newer_college",
+        frame="Ouster OS1-64, z up: kept",
+        intensity="the PCD's intensity field as stored, else none"),
+)

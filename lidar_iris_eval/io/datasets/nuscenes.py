@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, read_text
-from lidar_iris_eval.io.datasets import nuscenes_tables
 from lidar_iris_eval.io.datasets.base import (
     build,
     check_options,
@@ -38,6 +37,7 @@ from lidar_iris_eval.io.datasets.base import (
     record_dtype,
     se3,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_file
 from lidar_iris_eval.io.scans import Scan, clean_points
 from lidar_iris_eval.io.sequence import Sequence
 
@@ -145,3 +145,35 @@ def open_nuscenes(path: Path, poses=None, calib=None, tolerance=None, scene: str
                  functools.partial(read_nuscenes_scan, ego_radius=float(ego_radius)), "hdl32",
                  f"{tables_dir} (ego_pose · calibrated_sensor)", times=np.array(times),
                  scan_note=f"ego returns |x|,|y| < {float(ego_radius)} m dropped")
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def nuscenes_tables(path: Path) -> Path | None:
+    """The ``v1.0-*`` folder of JSON tables under a nuScenes data root, or None."""
+    if has_file(path, "sample_data.json") and has_file(path, "ego_pose.json"):
+        return path
+    if not path.is_dir():
+        return None
+    for child in sorted(path.glob("v1.0-*")):
+        if has_file(child, "sample_data.json"):
+            return child
+    return None
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "nuscenes", "nuScenes",
+        "<dataroot> with v1.0-*/ JSON tables and samples/LIDAR_TOP/*.pcd.bin "
+        "(one scene; --scene NAME when there are several)",
+        "ego_pose (global) × calibrated_sensor (LIDAR_TOP → ego), µs",
+        "keyframes of LIDAR_TOP walked through the next tokens; "
+        "pose = ego_pose · calibrated_sensor (quaternions w, x, y, z)",
+        "hdl32", "v1.0-*/sample_data.json",
+        lambda p: nuscenes_tables(p) is not None, "nuscenes:open_nuscenes",
+        frame=("LIDAR_TOP frame (x right, y forward, z up on the car): kept; ego returns dropped "
+               "as the devkit does (|x| < 1.0 m and |y| < 1.0 m, remove_close)"),
+        intensity="the record's fourth f32 (HDL-32E intensity, 0..255), as stored"),
+)

@@ -35,7 +35,6 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.errors import LirisError, read_text
-from lidar_iris_eval.io.datasets import oxford_scan_dir
 from lidar_iris_eval.io.datasets.base import (
     build,
     check_options,
@@ -46,6 +45,7 @@ from lidar_iris_eval.io.datasets.base import (
     se3,
     stem_stamps,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_dir, has_file
 from lidar_iris_eval.io.poses import check_finite
 from lidar_iris_eval.io.scans import Scan, clean_points
 from lidar_iris_eval.io.sequence import Sequence
@@ -198,3 +198,49 @@ def open_oxford_png(path: Path, poses=None, calib=None, tolerance: float = TOLER
                     **options) -> Sequence:
     """Open ``<run>/velodyne_left`` (or the run folder) of raw ``.png`` scans."""
     return _open(path, ".png", read_raw_png, "oxford-raw", poses, calib, tolerance, options)
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def oxford_scan_dir(path: Path) -> Path | None:
+    """``<run>/velodyne_left`` (or ``_right``) of an Oxford Radar RobotCar path, or None."""
+    if path.name in ("velodyne_left", "velodyne_right") and path.is_dir():
+        return path
+    for side in ("velodyne_left", "velodyne_right"):
+        if has_dir(path, side) and has_file(path, f"{side}.timestamps"):
+            return path / side
+    return None
+
+
+def _oxford_has(path: Path, suffix: str) -> bool:
+    folder = oxford_scan_dir(path)
+    return folder is not None and any(p.suffix == suffix for p in folder.iterdir())
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "oxford", "Oxford Radar RobotCar (velodyne .bin)",
+        "<run>/velodyne_left/<ts>.bin + <run>/velodyne_left.timestamps + <run>/gps/ins.csv "
+        "(extrinsics/ in <run> or its parent, else the SDK's values)",
+        "INS (northing, easting, down, roll, pitch, yaw), µs",
+        "planar 4×N float32 (never N×4); INS pose at each scan stamp; "
+        "T_ins · inv(T_stereo_ins) · T_stereo_velodyne",
+        "hdl32", "velodyne_left|right/ with .bin scans",
+        lambda p: _oxford_has(p, ".bin"), "oxford:open_oxford_bin",
+        frame=("SDK Velodyne frame x backward, y left, z down (extrinsic yaw ≈ π from the "
+               "x-forward, y-right, z-down stereo frame) → turned by π about y (x' = −x, z' = −z)"
+               " to x forward, y left, z up; poses turned alike"),
+        intensity="the fourth planar f32 row (HDL-32E intensity, 0..255), as stored"),
+    DatasetSpec(
+        "oxford-raw", "Oxford Radar RobotCar (raw velodyne .png)",
+        "<run>/velodyne_left/<ts>.png; timestamps, INS and extrinsics as for oxford",
+        "INS, as for oxford",
+        "rows 0-31 intensity, 32-95 ranges (uint16 · 2 mm), 96-97 azimuth; fixed HDL-32E "
+        "elevations (SDK); returns under 1 m dropped; poses as for oxford",
+        "hdl32", "velodyne_left|right/ with .png scans",
+        lambda p: _oxford_has(p, ".png"), "oxford:open_oxford_png",
+        frame="as oxford: the SDK's points (z down) turned by π about y",
+        intensity="rows 0-31, u8 (0..255)"),
+)

@@ -28,6 +28,7 @@ from lidar_iris_eval.io.datasets.base import (
     read_table,
     se3,
 )
+from lidar_iris_eval.io.datasets.spec import DatasetSpec, has_file
 from lidar_iris_eval.io.pcd import read_pcd
 from lidar_iris_eval.io.scans import read_kitti_bin
 from lidar_iris_eval.io.sequence import Sequence
@@ -79,3 +80,39 @@ def open_wild_v3(path: Path, poses=None, calib=None, tolerance: float = TOLERANC
     """Open a Wild-Places v3 sequence (``Clouds_downsampled/`` + ``submap_poses.csv``)."""
     return _open(path, "Clouds_downsampled", ".bin", "submap_poses.csv", read_kitti_bin,
                  "wild-places-v3", poses, calib, tolerance, options)
+
+
+# --- the registry entry: lidar_iris_eval.io.datasets lists SPECS in its order ---------
+
+
+def _wild_v12(path: Path) -> bool:
+    return has_file(path, "poses_aligned.csv") or (
+        path.name == "Clouds" and has_file(path.parent, "poses_aligned.csv"))
+
+
+def _wild_v3(path: Path) -> bool:
+    return has_file(path, "submap_poses.csv") or (
+        path.name == "Clouds_downsampled" and has_file(path.parent, "submap_poses.csv"))
+
+
+#: this module's datasets, in the order `liris datasets` lists them
+SPECS: tuple[DatasetSpec, ...] = (
+    DatasetSpec(
+        "wild-places", "Wild-Places v1/v2",
+        "<seq>/Clouds/<time>.pcd + <seq>/poses_aligned.csv",
+        "submap poses (timestamp,x,y,z,qx,qy,qz,qw); clouds are accumulated submaps",
+        "pose matched to each submap's stamp; no extrinsic",
+        "vlp16", "poses_aligned.csv",
+        _wild_v12, "wildplaces:open_wild_v12",
+        frame="submap frame, z up: kept",
+        intensity="the PCD's intensity field as stored, else none"),
+    DatasetSpec(
+        "wild-places-v3", "Wild-Places v3",
+        "<seq>/Clouds_downsampled/<time>.bin + <seq>/submap_poses.csv",
+        "submap poses (%time,x,y,z,qx,qy,qz,qw); clouds are accumulated submaps",
+        "pose matched to each submap's stamp; no extrinsic",
+        "vlp16", "submap_poses.csv",
+        _wild_v3, "wildplaces:open_wild_v3",
+        frame="submap frame, z up: kept",
+        intensity="the file's fourth f32, as stored"),
+)
