@@ -65,8 +65,10 @@ COLUMNS = ("world", "sensor", "frames", "method", "preset", "revisits", "localis
            "loc_zero_fp_matches", "f1_max", "r100p", "run")
 
 
-def liris(*args: str) -> None:
+def liris(*args: str, prog: str = "table1") -> None:
     """Run the liris CLI of this interpreter; stop on its error.
+
+    ``prog`` names the calling script in its progress lines and failures.
 
     A bad input (liris' exit code 2) is passed on as its one error line, so
     the script's own failure reads like the CLI's; anything else is shown in
@@ -80,8 +82,8 @@ def liris(*args: str) -> None:
                          .removeprefix("liris: error:").strip())
     if done.returncode:
         sys.stderr.write(done.stderr)
-        raise SystemExit(f"table1: failed: liris {' '.join(args)}")
-    print(f"table1: liris {' '.join(args[:2])} ... {time.perf_counter() - t0:.0f} s",
+        raise SystemExit(f"{prog}: failed: liris {' '.join(args)}")
+    print(f"{prog}: liris {' '.join(args[:2])} ... {time.perf_counter() - t0:.0f} s",
           file=sys.stderr, flush=True)
 
 
