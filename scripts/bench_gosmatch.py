@@ -1,6 +1,6 @@
 """GOSMatch: parameter sweep on simulated sequences, and protocol-1 speed at KITTI scale.
 
-Two jobs, both outside the test suite:
+Three jobs, all outside the test suite:
 
 ``sweep SEQ``
     Protocol 1 (E = 30, 4 m, ``revisits`` recall) on a *simulated* sequence with
@@ -19,6 +19,15 @@ Two jobs, both outside the test suite:
     of queries in the same run. Matching runs on one thread; ``--processes 2``
     also times it with the queries dealt to 2 forked processes (the same
     per-query steps; the matches are checked identical to the pipeline's).
+
+``census SEQ``
+    Why a world gives GOSMatch few or no matches: over every ``--every``-th
+    scan of a sequence with labels, the labelled points of each object class
+    (vehicle, trunk, pole), the objects the front end keeps per scan, how many
+    scans reach the ``min_inliers`` objects verification needs (a scan with
+    fewer can never be accepted, as query or as candidate), and where the
+    trunk points lie (median range; the share in clusters the front end
+    keeps). JSON on stdout.
 
 The machine may be shared: the report holds the load average before and after.
 """
@@ -177,6 +186,47 @@ def sweep(args) -> None:
         Path(args.json).write_text(json.dumps(results, indent=1))
 
 
+def census(args) -> None:
+    """The ``census`` job (module docstring): objects per scan against what verification needs."""
+    from lidar_iris_eval.descriptors.gosmatch.graph import CLASS_NAMES
+    from lidar_iris_eval.descriptors.gosmatch.semantics import class_ids, euclidean_clusters
+
+    seq = load_sequence(args.seq, args.poses, args.calib)
+    method = get_descriptor("gosmatch", preset=args.preset)
+    s = method.cluster_settings
+    frames = range(0, len(seq), max(1, args.every))
+    labelled, objects, trunk_range, trunk_kept, trunk_total = [], [], [], 0, 0
+    for i in frames:
+        scan = _LabelledScan(seq, i)
+        sem = scan.labels & 0xFFFF
+        labelled.append([int(np.isin(sem, ids).sum()) for ids in class_ids(s)])
+        objects.append(np.bincount(method.objects(scan)[1], minlength=3)[:3])
+        trunk = scan.points[np.isin(sem, class_ids(s)[1])].astype(np.float64)
+        trunk_range.append(np.linalg.norm(trunk, axis=1))
+        trunk_total += len(trunk)
+        trunk_kept += sum(len(c) for c in euclidean_clusters(trunk, s.tolerance, s.min_points))
+    labelled, objects = np.array(labelled), np.array(objects)
+    per_scan = objects.sum(axis=1)
+    ranges = np.concatenate(trunk_range)
+    need = method.params.min_inliers
+    print(json.dumps({
+        "sequence": str(args.seq), "scans": len(frames), "every": args.every,
+        "front_end": {"tolerance_m": s.tolerance, "min_points": s.min_points,
+                      "max_range_m": s.max_range},
+        "labelled_points_per_scan_mean": {n: round(float(labelled[:, k].mean()), 1)
+                                          for k, n in enumerate(CLASS_NAMES)},
+        "objects_per_scan_mean": {n: round(float(objects[:, k].mean()), 2)
+                                  for k, n in enumerate(CLASS_NAMES)},
+        "objects_per_scan_median": float(np.median(per_scan)),
+        "objects_per_scan_max": int(per_scan.max()),
+        "min_inliers": need,
+        f"scans_with_at_least_{need}_objects": int((per_scan >= need).sum()),
+        "trunk_range_median_m": None if not len(ranges) else round(float(np.median(ranges)), 1),
+        "trunk_points_in_kept_clusters": None if not trunk_total
+        else round(trunk_kept / trunk_total, 3),
+    }, indent=1))
+
+
 _SHARED: dict = {}
 
 
@@ -283,7 +333,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="job", required=True)
-    for name in ("sweep", "speed"):
+    for name in ("sweep", "speed", "census"):
         p = sub.add_parser(name)
         p.add_argument("seq")
         p.add_argument("--poses")
@@ -309,8 +359,10 @@ def main(argv=None) -> None:
     sw.add_argument("--min-inliers", type=int, nargs="+", default=[4])
     sw.add_argument("--score", nargs="+", default=["clipped-mean"])
     sw.add_argument("--seeds", type=int, nargs="+", default=[0])
+    sub.choices["census"].add_argument("--every", type=int, default=1,
+                                       help="every N-th scan")
     args = parser.parse_args(argv)
-    sweep(args) if args.job == "sweep" else speed(args)
+    {"sweep": sweep, "speed": speed, "census": census}[args.job](args)
 
 
 if __name__ == "__main__":

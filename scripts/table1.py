@@ -2,7 +2,7 @@
 
     python scripts/table1.py [--out results/table1] [--frames N] [--azimuth-steps N]
         [--worlds urban-dense,forest,park] [--methods lidar-iris,scan-context,...]
-        [--workers N] [--cache-dir DIR] [--figure]
+        [--workers N] [--cache-dir DIR] [--figure] [--overwrite]
 
 For every world (default ``urban-dense``, ``forest`` with its HDL-32E,
 ``park`` with its VLP-16) it runs ``liris simulate OUT/<world>/seq --world W``
@@ -13,6 +13,14 @@ liris eval) with every method into run folders ``OUT/<world>/run-<k>`` (one
 name, so they go to different runs), reads each run's metrics.json and
 prints a Markdown table; ``OUT/table1.csv`` and ``OUT/table1.json`` hold the
 same rows.
+
+Outputs are never replaced silently (as ``liris`` itself): before any work
+starts, an existing ``table1.csv`` / ``table1.json``, run folder or simulated
+sequence of another configuration is refused unless ``--overwrite`` is given,
+and even then only what liris wrote is replaced (a run folder with its liris
+manifest and nothing added, a sequence ``liris simulate`` wrote); a bad output
+is one ``liris: error:`` line naming it, exit code 2. The two tables are
+written atomically (a reader sees the old file or the new one, never half).
 
 Columns: ``localisations`` = localisations at zero false positives =
 R@100P x revisit queries (liris' protocol 1 recall is over revisit queries);
@@ -34,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import subprocess
 import sys
@@ -41,6 +50,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from lidar_iris_eval.atomic import atomic_write
+from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.ownership import check_new_files
+from lidar_iris_eval.runs.writer import check_run_dir
+from lidar_iris_eval.simulate.writer import check_out_dir
 
 WORLDS = ("urban-dense", "forest", "park")
 #: the shortest sequences with revisit queries at E = 30 (liris gt on each preset)
@@ -50,15 +65,25 @@ COLUMNS = ("world", "sensor", "frames", "method", "preset", "revisits", "localis
            "loc_zero_fp_matches", "f1_max", "r100p", "run")
 
 
-def liris(*args: str) -> None:
-    """Run the liris CLI of this interpreter; stop on its error."""
+def liris(*args: str, prog: str = "table1") -> None:
+    """Run the liris CLI of this interpreter; stop on its error.
+
+    ``prog`` names the calling script in its progress lines and failures.
+
+    A bad input (liris' exit code 2) is passed on as its one error line, so
+    the script's own failure reads like the CLI's; anything else is shown in
+    full with the command that failed.
+    """
     cmd = [sys.executable, "-m", "lidar_iris_eval", *args]
     t0 = time.perf_counter()
     done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if done.returncode == 2 and done.stderr.strip().startswith("liris: error:"):
+        raise LirisError(None, done.stderr.strip().splitlines()[-1]
+                         .removeprefix("liris: error:").strip())
     if done.returncode:
         sys.stderr.write(done.stderr)
-        raise SystemExit(f"table1: failed: liris {' '.join(args)}")
-    print(f"table1: liris {' '.join(args[:2])} ... {time.perf_counter() - t0:.0f} s",
+        raise SystemExit(f"{prog}: failed: liris {' '.join(args)}")
+    print(f"{prog}: liris {' '.join(args[:2])} ... {time.perf_counter() - t0:.0f} s",
           file=sys.stderr, flush=True)
 
 
@@ -76,19 +101,34 @@ def method_groups(methods: list[str]) -> list[list[str]]:
     return groups
 
 
-def simulate(world: str, seq: Path, frames: int, azimuth_steps: int | None) -> dict:
-    """Simulate the world once; reuse a folder that already holds the same configuration."""
+def reusable(seq: Path, frames: int, azimuth_steps: int | None) -> dict | None:
+    """The configuration of a simulated sequence at ``seq`` that matches the request, or None."""
     manifest = seq / "manifest.json"
-    if manifest.exists():
+    if not manifest.is_file():
+        return None
+    try:
         config = json.loads(manifest.read_text())["config"]
         if config["frames"] == frames and (azimuth_steps is None
                                            or config["azimuth_steps"] == azimuth_steps):
             return config
-    args = ["simulate", str(seq), "--world", world, "--frames", str(frames), "-q", "--overwrite"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return None
+
+
+def simulate(world: str, seq: Path, frames: int, azimuth_steps: int | None,
+             overwrite: bool = False) -> dict:
+    """Simulate the world once; reuse a folder that already holds the same configuration."""
+    config = reusable(seq, frames, azimuth_steps)
+    if config is not None:
+        return config
+    args = ["simulate", str(seq), "--world", world, "--frames", str(frames), "-q"]
+    if overwrite:
+        args.append("--overwrite")
     if azimuth_steps is not None:
         args += ["--azimuth-steps", str(azimuth_steps)]
     liris(*args)
-    return json.loads(manifest.read_text())["config"]
+    return json.loads((seq / "manifest.json").read_text())["config"]
 
 
 def zero_fp_count(matches_csv: Path) -> int:
@@ -103,12 +143,13 @@ def zero_fp_count(matches_csv: Path) -> int:
 
 
 def evaluate(world: str, seq: Path, sensor: str, groups: list[list[str]], out: Path,
-             cache_dir: Path, workers: int) -> list[dict]:
+             cache_dir: Path, workers: int, overwrite: bool = False) -> list[dict]:
+    """Protocol 1 of every method group on ``seq`` into ``out/run-<k>``; one row per method."""
     rows = []
     for k, group in enumerate(groups):
         run = out / f"run-{k}"
         liris("eval", str(seq), "-d", ",".join(group), "--protocol", "1", "--exclude", "30",
-              "--sensor", sensor, "--out", str(run), "--overwrite", "-q",
+              "--sensor", sensor, "--out", str(run), "-q", *(["--overwrite"] * overwrite),
               "--cache-dir", str(cache_dir), "--workers", str(workers))
         metrics = json.loads((run / "metrics.json").read_text())
         results = {r["descriptor"]: r for r in metrics["results"] if r["protocol"] == 1}
@@ -128,33 +169,73 @@ def evaluate(world: str, seq: Path, sensor: str, groups: list[list[str]], out: P
     return rows
 
 
+def world_frames(world: str, frames: int | dict | None) -> int:
+    """The length of ``world``: one count for all, a ``{world: count}`` dict, or the default."""
+    if isinstance(frames, dict):
+        return frames[world]
+    return frames if frames is not None else DEFAULT_FRAMES.get(world, 200)
+
+
+def check_outputs(out: Path, worlds, groups: list[list[str]], frames: int | dict | None,
+                  azimuth_steps: int | None, overwrite: bool) -> None:
+    """Refuse, before any work, every output the run would replace without ``--overwrite``.
+
+    The same rules as the CLI's, through its own checks: the tables are single
+    files (:func:`~lidar_iris_eval.ownership.check_new_files`), run folders
+    are replaced only when liris wrote them with nothing added
+    (:func:`~lidar_iris_eval.runs.writer.check_run_dir`), and a sequence of
+    another configuration only when ``liris simulate`` wrote it
+    (:func:`~lidar_iris_eval.simulate.writer.check_out_dir`). Checking up
+    front matters because the run takes minutes: a refusal after the first
+    world would leave a half-replaced table folder.
+
+    Raises
+    ------
+    LirisError
+        Naming the first output that may not be written.
+    """
+    out = Path(out)
+    check_new_files([out / "table1.csv", out / "table1.json"], overwrite, "--out")
+    for world in worlds:
+        seq = out / world / "seq"
+        if reusable(seq, world_frames(world, frames), azimuth_steps) is None:
+            check_out_dir(seq, overwrite)
+        for k in range(len(groups)):
+            check_run_dir(out / world / f"run-{k}", overwrite)
+
+
+def write_tables(out: Path, rows: list[dict]) -> None:
+    """OUT/table1.csv and OUT/table1.json, each written atomically."""
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=COLUMNS)
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write(out / "table1.csv", text.getvalue(), what="table")
+    atomic_write(out / "table1.json", json.dumps(rows, indent=1) + "\n", what="table")
+
+
 def table1(out: Path, worlds=WORLDS, methods=METHODS, frames: int | dict | None = None,
            azimuth_steps: int | None = None, cache_dir: Path | None = None, workers: int = 1,
-           figure: bool = False) -> list[dict]:
+           figure: bool = False, overwrite: bool = False) -> list[dict]:
     """Simulate, evaluate and tabulate; writes OUT/table1.csv and OUT/table1.json.
 
     ``frames``: one count for every world, a ``{world: count}`` dict, or None
-    (:data:`DEFAULT_FRAMES`).
+    (:data:`DEFAULT_FRAMES`). ``overwrite``: replace earlier outputs (only
+    those liris wrote, see :func:`check_outputs`), as ``--overwrite``.
     """
     out = Path(out)
     cache_dir = Path(cache_dir) if cache_dir else out / "cache"
     groups = method_groups(list(methods))
+    check_outputs(out, list(worlds), groups, frames, azimuth_steps, overwrite)
     rows = []
     for world in worlds:
-        if isinstance(frames, dict):
-            n = frames[world]
-        else:
-            n = frames if frames is not None else DEFAULT_FRAMES.get(world, 200)
-        config = simulate(world, out / world / "seq", n, azimuth_steps)
+        config = simulate(world, out / world / "seq", world_frames(world, frames),
+                          azimuth_steps, overwrite)
         rows += evaluate(world, out / world / "seq", config["sensor"], groups, out / world,
-                         cache_dir, workers)
+                         cache_dir, workers, overwrite)
         if figure:
             liris("plot", str(out / world / "run-0"))
-    with open(out / "table1.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
-    (out / "table1.json").write_text(json.dumps(rows, indent=1) + "\n")
+    write_tables(out, rows)
     return rows
 
 
@@ -193,10 +274,15 @@ def main(argv=None) -> None:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--figure", action="store_true",
                    help="also liris plot every world's first run (trajectory.png)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace earlier tables, runs and sequences (only those liris wrote)")
     a = p.parse_args(argv)
-    a.out.mkdir(parents=True, exist_ok=True)
-    rows = table1(a.out, a.worlds.split(","), a.methods.split(","), a.frames, a.azimuth_steps,
-                  a.cache_dir, a.workers, a.figure)
+    try:
+        rows = table1(a.out, a.worlds.split(","), a.methods.split(","), a.frames,
+                      a.azimuth_steps, a.cache_dir, a.workers, a.figure, a.overwrite)
+    except LirisError as err:
+        print(f"liris: error: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(2)
     print(markdown(rows))
 
 

@@ -105,6 +105,60 @@ def test_csv_json_and_markdown(table):
         assert any(line.startswith(f"| {m} |") for line in md)
 
 
+def run_script(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), "--worlds", "forest", "--methods",
+                           "scan-context", "--frames", "170", "--azimuth-steps",
+                           str(AZIMUTH_STEPS), *args], capture_output=True, text=True)
+
+
+def test_existing_table_is_not_replaced_without_overwrite(tmp_path):
+    """A second run into the same --out refuses at once, one line, exit 2, nothing touched."""
+    (tmp_path / "table1.csv").write_text("my own notes\n")
+    done = run_script("--out", str(tmp_path))
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("liris: error:"), done.stderr
+    assert "table1.csv" in lines[0] and "--overwrite" in lines[0]
+    assert "Traceback" not in done.stderr
+    assert (tmp_path / "table1.csv").read_text() == "my own notes\n"
+    # refused before any work: nothing was simulated
+    assert not (tmp_path / "forest").exists()
+
+
+def test_overwrite_never_replaces_a_folder_liris_did_not_write(tmp_path):
+    """--overwrite replaces liris' runs only; a user's folder at a run's place is refused."""
+    run = tmp_path / "forest" / "run-0"
+    run.mkdir(parents=True)
+    (run / "notes.txt").write_text("mine\n")
+    done = run_script("--out", str(tmp_path), "--overwrite")
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "run-0" in lines[0], done.stderr
+    assert (run / "notes.txt").read_text() == "mine\n"
+    assert not (tmp_path / "forest" / "seq").exists()
+
+
+def test_rerun_needs_overwrite_and_is_then_allowed(table):
+    """The fixture's own outputs: refused without --overwrite, all replaceable with it."""
+    from lidar_iris_eval.errors import LirisError
+
+    out, rows = table
+    script = load_script()
+    groups = script.method_groups(list(METHODS))
+    with pytest.raises(LirisError, match="table1.csv.*--overwrite"):
+        script.check_outputs(out, list(FRAMES), groups, FRAMES, AZIMUTH_STEPS, False)
+    script.check_outputs(out, list(FRAMES), groups, FRAMES, AZIMUTH_STEPS, True)
+    # without the tables, the run folders are what is refused
+    (out / "table1.csv").rename(out / "keep.csv")
+    (out / "table1.json").rename(out / "keep.json")
+    try:
+        with pytest.raises(LirisError, match="run-0.*--overwrite"):
+            script.check_outputs(out, list(FRAMES), groups, FRAMES, AZIMUTH_STEPS, False)
+    finally:
+        (out / "keep.csv").rename(out / "table1.csv")
+        (out / "keep.json").rename(out / "table1.json")
+
+
 def test_pinned_numbers(table):
     out, rows = table
     for r in rows:
