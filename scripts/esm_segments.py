@@ -36,6 +36,8 @@ from lidar_iris_eval.errors import LirisError
 @pose_file_options
 @click.option("-o", "--out", type=click.Path(path_type=Path), required=True,
               help="The segments file to write (.npz).")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing --out file (never one inside SEQUENCE).")
 @click.option("--preset", default="local-maps", show_default=True,
               help="The ESM local-map preset whose local maps and front end are used.")
 @click.option("--exclude", type=int, default=30, show_default=True,
@@ -45,11 +47,12 @@ from lidar_iris_eval.errors import LirisError
 @click.option("--match", type=float, default=1.0, show_default=True,
               help="Two views are the same segment when their world centroids are this close (m).")
 @click.option("--limit", type=int, default=None, help="Only the first N frames.")
-def command(sequence, reader_options, out, preset, exclude, every_map, match, limit):
+def command(sequence, reader_options, out, overwrite, preset, exclude, every_map, match, limit):
     """Write the local-map segments of SEQUENCE (with poses) for ESM training."""
     from lidar_iris_eval.descriptors import get_descriptor
     from lidar_iris_eval.descriptors.esm.dataset import sequence_local_map_segments, true_pairs
     from lidar_iris_eval.io import open_sequence
+    from lidar_iris_eval.ownership import check_new_files
 
     if exclude < 1 or every_map < 1:
         raise LirisError("--exclude/--every-map", "must be at least 1 frame")
@@ -57,6 +60,7 @@ def command(sequence, reader_options, out, preset, exclude, every_map, match, li
         raise LirisError(f"--match {match}", "must be positive")
     if out.suffix != ".npz":
         raise LirisError(f"--out {out}", "give a .npz file")
+    check_new_files([out], overwrite, "--out", inputs=[sequence])  # before any work
     esm = get_descriptor("esm", preset).bind_exclusion(exclude)
     if not esm.local_map:
         raise LirisError(f"--preset {preset}", "is not a local-map preset")

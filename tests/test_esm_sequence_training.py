@@ -78,6 +78,17 @@ def test_segments_script_bad_input_is_one_error_line(tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith("liris: error:")
 
 
+def test_segments_script_refuses_to_replace_its_output(segments, plain_sequence, capsys):
+    """An existing --out is replaced only with --overwrite, checked before any work."""
+    before = segments.read_bytes()
+    with pytest.raises(SystemExit) as err:
+        _script("esm_segments").main([str(plain_sequence), "-o", str(segments)])
+    assert err.value.code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "--overwrite" in lines[0] and str(segments) in lines[0]
+    assert segments.read_bytes() == before
+
+
 def _train(segments, work, out, steps, *extra):
     train_esm = _script("train_esm")
     train_esm.main(["--source", "segments", "--train-segments", str(segments),
