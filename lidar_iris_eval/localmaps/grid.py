@@ -110,14 +110,18 @@ class VoxelWindow:
             raise ValueError(f"frames must increase: {frame} after {self.scans[-1].frame}")
         mm = np.rint(np.asarray(world_points, dtype=np.float64)[:, :3] * 1000.0).astype(np.int64)
         keys = encode(np.floor_divide(mm, self.voxel_mm))
-        uniq, inv = np.unique(keys, return_inverse=True)
-        counts = np.bincount(inv, minlength=len(uniq)).astype(np.int64)
-        sums = np.zeros((len(uniq), 3), np.int64)
-        for axis in range(3):  # exact integer sums (bincount would go through float64)
-            order = np.argsort(inv, kind="stable")
-            bounds = np.concatenate([[0], np.cumsum(counts)])
-            csum = np.concatenate([[0], np.cumsum(mm[order, axis])])
-            sums[:, axis] = csum[bounds[1:]] - csum[bounds[:-1]]
+        # one stable sort groups the points by voxel (the order of np.unique and of its
+        # inverse); the integer sums do not depend on the order within a voxel anyway
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
+        starts = np.flatnonzero(np.concatenate([[True], sorted_keys[1:] != sorted_keys[:-1]]))
+        starts = starts[: len(sorted_keys)]  # no group in an empty scan
+        uniq = sorted_keys[starts]
+        bounds = np.concatenate([starts, [len(sorted_keys)]])
+        counts = np.diff(bounds).astype(np.int64)
+        csum = np.zeros((len(keys) + 1, 3), np.int64)
+        np.cumsum(mm[order], axis=0, out=csum[1:])
+        sums = csum[bounds[1:]] - csum[bounds[:-1]]
         self.scans.append(_Contribution(int(frame), uniq, counts, sums))
         pos = np.searchsorted(self.keys, uniq)
         present = pos < len(self.keys)
@@ -127,12 +131,12 @@ class VoxelWindow:
         self.sums[hit] += sums[present]
         self.last[hit] = frame
         new = ~present
-        keys_all = np.concatenate([self.keys, uniq[new]])
-        order = np.argsort(keys_all, kind="stable")
-        self.keys = keys_all[order]
-        self.counts = np.concatenate([self.counts, counts[new]])[order]
-        self.sums = np.concatenate([self.sums, sums[new]])[order]
-        self.last = np.concatenate([self.last, np.full(int(new.sum()), frame, np.int64)])[order]
+        if new.any():  # merge the new voxels in place of sorting the whole map again
+            at = pos[new]
+            self.keys = np.insert(self.keys, at, uniq[new])
+            self.counts = np.insert(self.counts, at, counts[new])
+            self.sums = np.insert(self.sums, at, sums[new], axis=0)
+            self.last = np.insert(self.last, at, np.int64(frame))
 
     def drop_before(self, frame: int) -> None:
         """Drop every stored scan of a frame ``<= frame - window`` (the window rule)."""
@@ -148,10 +152,16 @@ class VoxelWindow:
         far = ~self._inside(self.keys, centre_xy)
         if not far.any():
             return
+        gone = self.keys[far]  # sorted; every stored scan's keys are map keys (invariant)
         self._keep(~far)
-        for c in self.scans:
-            keep = self._inside(c.keys, centre_xy)
-            if not keep.all():
+        for c in self.scans:  # look the few leaving voxels up, not every stored voxel
+            pos = np.searchsorted(c.keys, gone)
+            found = pos < len(c.keys)
+            pos = pos[found]
+            pos = pos[c.keys[pos] == gone[found]]
+            if len(pos):
+                keep = np.ones(len(c.keys), bool)
+                keep[pos] = False
                 c.keys, c.counts, c.sums = c.keys[keep], c.counts[keep], c.sums[keep]
 
     # ------------------------------------------------------------------ reading
@@ -170,9 +180,13 @@ class VoxelWindow:
     # ------------------------------------------------------------------ helpers
 
     def _inside(self, keys: np.ndarray, centre_xy: np.ndarray) -> np.ndarray:
-        centre = (decode(keys)[:, :2] + 0.5) * (self.voxel_mm / 1000.0)
-        d2 = ((centre - np.asarray(centre_xy, dtype=np.float64)[:2]) ** 2).sum(axis=1)
-        return d2 <= self.radius**2
+        k = np.asarray(keys, dtype=np.int64)
+        v = self.voxel_mm / 1000.0
+        c = np.asarray(centre_xy, dtype=np.float64)
+        # the two horizontal voxel indices only (decode's first two columns)
+        dx = (((k >> (2 * _BITS)) & _MASK) - _OFFSET + 0.5) * v - c[0]
+        dy = (((k >> _BITS) & _MASK) - _OFFSET + 0.5) * v - c[1]
+        return dx * dx + dy * dy <= self.radius**2
 
     def _keep(self, mask: np.ndarray) -> None:
         self.keys, self.counts = self.keys[mask], self.counts[mask]
