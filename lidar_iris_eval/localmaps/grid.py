@@ -12,7 +12,9 @@ of frame ``i`` is the same whether it was built from frame 0 or from frame
 3. **crop**: every voxel whose centre is farther than ``radius`` (horizontal)
    from pose ``i`` is removed for good, from the map and from the stored scans
    (SegMap drops far voxels the same way), so memory is bounded by the
-   cylinder, not the sequence.
+   cylinder, not the sequence. (A stored scan marks its cropped voxels dead and
+   compacts once a quarter of them are, or when it is dropped: a dead entry is never
+   subtracted, so the map is the same as with an immediate removal.)
 """
 
 from __future__ import annotations
@@ -47,6 +49,27 @@ class _Contribution:
     keys: np.ndarray  # (m,) sorted unique
     counts: np.ndarray  # (m,) int64
     sums: np.ndarray  # (m, 3) int64 millimetres
+    #: True where a crop removed the voxel and the arrays were not compacted yet; a dead
+    #: entry is no contribution (its points left the map with the voxel)
+    dead: np.ndarray | None = None
+    n_dead: int = 0
+
+    def kill(self, pos: np.ndarray) -> None:
+        """Mark the entries ``pos`` dead; compact once a quarter of the entries are."""
+        if self.dead is None:
+            self.dead = np.zeros(len(self.keys), bool)
+        pos = pos[~self.dead[pos]]
+        self.dead[pos] = True
+        self.n_dead += len(pos)
+        if 4 * self.n_dead >= len(self.keys):
+            self.compact()
+
+    def compact(self) -> None:
+        """Remove the dead entries (the arrays then hold exactly the live contribution)."""
+        if self.n_dead:
+            keep = ~self.dead
+            self.keys, self.counts, self.sums = self.keys[keep], self.counts[keep], self.sums[keep]
+        self.dead, self.n_dead = None, 0
 
 
 @dataclass(frozen=True)
@@ -94,10 +117,26 @@ class VoxelWindow:
         if self.voxel_mm < 1:
             raise ValueError("voxel must be at least 1 mm")
         self.keys = np.zeros(0, np.int64)
-        self.counts = np.zeros(0, np.int64)
-        self.sums = np.zeros((0, 3), np.int64)
-        self.last = np.zeros(0, np.int64)
+        # one row per voxel: count, the three millimetre sums, last frame (one array, so a
+        # removal or an insertion is one copy, not four)
+        self.table = np.zeros((0, 5), np.int64)
         self.scans: deque[_Contribution] = deque()
+        self._zeros = False  # voxels with no point left wait for the next crop
+
+    @property
+    def counts(self) -> np.ndarray:
+        """``(M,)`` points per voxel (a view of the table)."""
+        return self.table[:, 0]
+
+    @property
+    def sums(self) -> np.ndarray:
+        """``(M, 3)`` integer sums of the voxels' coordinates in millimetres (a view)."""
+        return self.table[:, 1:4]
+
+    @property
+    def last(self) -> np.ndarray:
+        """``(M,)`` the latest frame whose scan fed each voxel (a view)."""
+        return self.table[:, 4]
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -127,42 +166,56 @@ class VoxelWindow:
         present = pos < len(self.keys)
         present[present] = self.keys[pos[present]] == uniq[present]
         hit = pos[present]
-        self.counts[hit] += counts[present]
-        self.sums[hit] += sums[present]
-        self.last[hit] = frame
+        self.table[hit, 0] += counts[present]
+        self.table[hit, 1:4] += sums[present]
+        self.table[hit, 4] = frame
         new = ~present
         if new.any():  # merge the new voxels in place of sorting the whole map again
             at = pos[new]
+            rows = np.empty((len(at), 5), np.int64)
+            rows[:, 0], rows[:, 1:4], rows[:, 4] = counts[new], sums[new], frame
             self.keys = np.insert(self.keys, at, uniq[new])
-            self.counts = np.insert(self.counts, at, counts[new])
-            self.sums = np.insert(self.sums, at, sums[new], axis=0)
-            self.last = np.insert(self.last, at, np.int64(frame))
+            self.table = np.insert(self.table, at, rows, axis=0)
 
-    def drop_before(self, frame: int) -> None:
-        """Drop every stored scan of a frame ``<= frame - window`` (the window rule)."""
+    def drop_before(self, frame: int, compact: bool = True) -> None:
+        """Drop every stored scan of a frame ``<= frame - window`` (the window rule).
+
+        ``compact=False`` leaves the voxels with no point left in the arrays until the
+        next :meth:`crop` removes them with the far ones (one copy per frame, not two);
+        the map is only read after that crop.
+        """
         while self.scans and self.scans[0].frame <= frame - self.window:
             c = self.scans.popleft()
-            pos = np.searchsorted(self.keys, c.keys)  # every key is present (invariant)
-            self.counts[pos] -= c.counts
-            self.sums[pos] -= c.sums
+            c.compact()
+            pos = np.searchsorted(self.keys, c.keys)  # every live key is present (invariant)
+            self.table[pos, 0] -= c.counts
+            self.table[pos, 1:4] -= c.sums
+            self._zeros = True
+        if compact and self._zeros:
             self._keep(self.counts > 0)
 
     def crop(self, centre_xy: np.ndarray) -> None:
         """Remove for good every voxel whose centre is farther than ``radius`` away."""
-        far = ~self._inside(self.keys, centre_xy)
-        if not far.any():
+        inside = self._inside(self.keys, centre_xy)
+        if self._zeros:
+            live = self.counts > 0
+            keep = inside & live
+            gone = self.keys[~inside & live]
+        else:
+            keep, gone = inside, self.keys[~inside]
+        if len(keep) and keep.all():
+            self._zeros = False
             return
-        gone = self.keys[far]  # sorted; every stored scan's keys are map keys (invariant)
-        self._keep(~far)
+        self._keep(keep)
+        if not len(gone):
+            return
         for c in self.scans:  # look the few leaving voxels up, not every stored voxel
             pos = np.searchsorted(c.keys, gone)
             found = pos < len(c.keys)
             pos = pos[found]
             pos = pos[c.keys[pos] == gone[found]]
             if len(pos):
-                keep = np.ones(len(c.keys), bool)
-                keep[pos] = False
-                c.keys, c.counts, c.sums = c.keys[keep], c.counts[keep], c.sums[keep]
+                c.kill(pos)
 
     # ------------------------------------------------------------------ reading
 
@@ -174,7 +227,9 @@ class VoxelWindow:
         return tuple(c.frame for c in self.scans)
 
     def stored_voxels(self) -> int:
-        """Voxels held by the stored scans (the memory besides the map itself)."""
+        """Voxels held by the stored scans (the memory besides the map itself); compacts them."""
+        for c in self.scans:
+            c.compact()
         return int(sum(len(c.keys) for c in self.scans))
 
     # ------------------------------------------------------------------ helpers
@@ -189,8 +244,8 @@ class VoxelWindow:
         return dx * dx + dy * dy <= self.radius**2
 
     def _keep(self, mask: np.ndarray) -> None:
-        self.keys, self.counts = self.keys[mask], self.counts[mask]
-        self.sums, self.last = self.sums[mask], self.last[mask]
+        self.keys, self.table = self.keys[mask], self.table[mask]
+        self._zeros = False
 
 
 class LocalMap:
@@ -208,7 +263,7 @@ class LocalMap:
         pose = np.asarray(pose, dtype=np.float64)
         kept = self.filter.apply(points)
         self.grid.add(frame, kept @ pose[:3, :3].T + pose[:3, 3])
-        self.grid.drop_before(frame)
+        self.grid.drop_before(frame, compact=False)
         self.grid.crop(pose[:2, 3])
 
     def frame(self, frame: int, pose: np.ndarray) -> LocalMapFrame:
