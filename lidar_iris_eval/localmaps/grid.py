@@ -47,12 +47,22 @@ def decode(keys: np.ndarray) -> np.ndarray:
 class _Contribution:
     frame: int
     keys: np.ndarray  # (m,) sorted unique
-    counts: np.ndarray  # (m,) int64
-    sums: np.ndarray  # (m, 3) int64 millimetres
+    #: (m,) int64 columns: points per voxel, then the x, y, z sums in millimetres (1-D
+    #: arrays: NumPy's boolean indexing and insertion are several times faster on them
+    #: than on the rows of an (m, k) array)
+    cols: list
     #: True where a crop removed the voxel and the arrays were not compacted yet; a dead
     #: entry is no contribution (its points left the map with the voxel)
     dead: np.ndarray | None = None
     n_dead: int = 0
+
+    @property
+    def counts(self) -> np.ndarray:
+        return self.cols[0]
+
+    @property
+    def sums(self) -> np.ndarray:
+        return np.stack(self.cols[1:], 1)
 
     def kill(self, pos: np.ndarray) -> None:
         """Mark the entries ``pos`` dead; compact once a quarter of the entries are."""
@@ -68,7 +78,7 @@ class _Contribution:
         """Remove the dead entries (the arrays then hold exactly the live contribution)."""
         if self.n_dead:
             keep = ~self.dead
-            self.keys, self.counts, self.sums = self.keys[keep], self.counts[keep], self.sums[keep]
+            self.keys, self.cols = self.keys[keep], [c[keep] for c in self.cols]
         self.dead, self.n_dead = None, 0
 
 
@@ -117,26 +127,26 @@ class VoxelWindow:
         if self.voxel_mm < 1:
             raise ValueError("voxel must be at least 1 mm")
         self.keys = np.zeros(0, np.int64)
-        # one row per voxel: count, the three millimetre sums, last frame (one array, so a
-        # removal or an insertion is one copy, not four)
-        self.table = np.zeros((0, 5), np.int64)
+        # per voxel, five 1-D int64 columns: count, the x, y, z sums (mm), last frame
+        # (1-D: a removal or an insertion is a fast copy per column; see _Contribution)
+        self.cols = [np.zeros(0, np.int64) for _ in range(5)]
         self.scans: deque[_Contribution] = deque()
         self._zeros = False  # voxels with no point left wait for the next crop
 
     @property
     def counts(self) -> np.ndarray:
-        """``(M,)`` points per voxel (a view of the table)."""
-        return self.table[:, 0]
+        """``(M,)`` points per voxel."""
+        return self.cols[0]
 
     @property
     def sums(self) -> np.ndarray:
-        """``(M, 3)`` integer sums of the voxels' coordinates in millimetres (a view)."""
-        return self.table[:, 1:4]
+        """``(M, 3)`` integer sums of the voxels' coordinates in millimetres (a copy)."""
+        return np.stack(self.cols[1:4], 1)
 
     @property
     def last(self) -> np.ndarray:
-        """``(M,)`` the latest frame whose scan fed each voxel (a view)."""
-        return self.table[:, 4]
+        """``(M,)`` the latest frame whose scan fed each voxel."""
+        return self.cols[4]
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -157,25 +167,26 @@ class VoxelWindow:
         starts = starts[: len(sorted_keys)]  # no group in an empty scan
         uniq = sorted_keys[starts]
         bounds = np.concatenate([starts, [len(sorted_keys)]])
-        counts = np.diff(bounds).astype(np.int64)
-        csum = np.zeros((len(keys) + 1, 3), np.int64)
-        np.cumsum(mm[order], axis=0, out=csum[1:])
-        sums = csum[bounds[1:]] - csum[bounds[:-1]]
-        self.scans.append(_Contribution(int(frame), uniq, counts, sums))
+        cols = [np.diff(bounds).astype(np.int64)]
+        csum = np.zeros(len(keys) + 1, np.int64)
+        for axis in range(3):
+            np.cumsum(mm[order, axis], out=csum[1:])
+            cols.append(csum[bounds[1:]] - csum[bounds[:-1]])
+        self.scans.append(_Contribution(int(frame), uniq, cols))
         pos = np.searchsorted(self.keys, uniq)
         present = pos < len(self.keys)
         present[present] = self.keys[pos[present]] == uniq[present]
         hit = pos[present]
-        self.table[hit, 0] += counts[present]
-        self.table[hit, 1:4] += sums[present]
-        self.table[hit, 4] = frame
+        for mine, theirs in zip(self.cols[:4], cols, strict=True):
+            mine[hit] += theirs[present]
+        self.cols[4][hit] = frame
         new = ~present
         if new.any():  # merge the new voxels in place of sorting the whole map again
             at = pos[new]
-            rows = np.empty((len(at), 5), np.int64)
-            rows[:, 0], rows[:, 1:4], rows[:, 4] = counts[new], sums[new], frame
             self.keys = np.insert(self.keys, at, uniq[new])
-            self.table = np.insert(self.table, at, rows, axis=0)
+            self.cols = [np.insert(mine, at, theirs[new])
+                         for mine, theirs in zip(self.cols[:4], cols, strict=True)] + [
+                np.insert(self.cols[4], at, np.int64(frame))]
 
     def drop_before(self, frame: int, compact: bool = True) -> None:
         """Drop every stored scan of a frame ``<= frame - window`` (the window rule).
@@ -188,8 +199,8 @@ class VoxelWindow:
             c = self.scans.popleft()
             c.compact()
             pos = np.searchsorted(self.keys, c.keys)  # every live key is present (invariant)
-            self.table[pos, 0] -= c.counts
-            self.table[pos, 1:4] -= c.sums
+            for mine, theirs in zip(self.cols[:4], c.cols, strict=True):
+                mine[pos] -= theirs
             self._zeros = True
         if compact and self._zeros:
             self._keep(self.counts > 0)
@@ -221,7 +232,10 @@ class VoxelWindow:
 
     def centroids(self) -> np.ndarray:
         """``(M, 3)`` voxel centroids in metres (world frame), in key order."""
-        return self.sums / self.counts[:, None] / 1000.0
+        out = np.empty((len(self.keys), 3))
+        for axis in range(3):  # sum / count / 1000, the same float64 operations per element
+            out[:, axis] = self.cols[1 + axis] / self.cols[0] / 1000.0
+        return out
 
     def frames(self) -> tuple[int, ...]:
         return tuple(c.frame for c in self.scans)
@@ -244,7 +258,7 @@ class VoxelWindow:
         return dx * dx + dy * dy <= self.radius**2
 
     def _keep(self, mask: np.ndarray) -> None:
-        self.keys, self.table = self.keys[mask], self.table[mask]
+        self.keys, self.cols = self.keys[mask], [c[mask] for c in self.cols]
         self._zeros = False
 
 
