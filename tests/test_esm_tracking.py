@@ -238,3 +238,21 @@ def test_density_normalised_clusters_group_coarse_voxels():
                                                                         np.arange(32, 48))
     params4 = dc.replace(params, max_points=3)  # blob 1 has 4 coarse voxels: too large
     assert [len(m) for m in local_map_clusters(pts, params4)] == [16]
+
+
+def test_local_ground_mask_sparse_columns_equal_the_dense_grid(monkeypatch):
+    from lidar_iris_eval.descriptors.esm import local_segments
+
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(-20, 20, (3000, 2)), rng.normal(0, 0.5, 3000)])
+    calls = []
+    real = local_segments._sparse_ground_mask
+    monkeypatch.setattr(local_segments, "_sparse_ground_mask",
+                        lambda *a: calls.append(1) or real(*a))
+    # 0.1 m columns: a 400 x 400 grid, 160k cells > 4 per point: dense only below the limit
+    dense = local_segments.local_ground_mask(pts, 0.1, 0.3)
+    assert not calls
+    monkeypatch.setattr(local_segments, "DENSE_COLUMNS", 0)
+    sparse = local_segments.local_ground_mask(pts, 0.1, 0.3)
+    assert calls
+    assert np.array_equal(dense, sparse) and 0 < dense.sum() < len(pts)

@@ -30,6 +30,9 @@ from lidar_iris_eval.descriptors.esm.segmentation import (
 
 #: the steepest ground slope :func:`local_ground_mask` carries from a column to the next (deg)
 GROUND_MAX_SLOPE = 15.0
+#: :func:`local_ground_mask` holds a dense grid of columns up to this many cells (or 4 per
+#: point), else it works on the occupied columns only
+DENSE_COLUMNS = 1 << 22
 
 
 def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.ndarray:
@@ -55,6 +58,8 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
     j -= j.min() - 1
     rows, width = int(i.max()) + 2, int(j.max()) + 2
     flat = i * width + j
+    if rows * width > max(4 * len(pts), DENSE_COLUMNS):  # sparse columns: tiny cells
+        return _sparse_ground_mask(pts[:, 2], flat, width, cell, clearance)
     # a dense grid of columns (the map is a bounded cylinder): empty columns stay +inf,
     # and inf + rise is inf, so they never lower a neighbour
     lowest = np.full(rows * width, np.inf)
@@ -71,6 +76,26 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
             np.minimum(inner, lowest[1 + di:rows - 1 + di, 1 + dj:width - 1 + dj] + step,
                        out=inner)
     return pts[:, 2] <= ground.reshape(-1)[flat] + clearance
+
+
+def _sparse_ground_mask(z: np.ndarray, flat: np.ndarray, width: int, cell: float,
+                        clearance: float) -> np.ndarray:
+    """:func:`local_ground_mask` over the occupied columns only (``flat``: each point's
+    column on a grid ``width`` wide with a free border), for grids too large to hold."""
+    cells, inverse = np.unique(flat, return_inverse=True)
+    lowest = np.full(len(cells), np.inf)
+    np.minimum.at(lowest, inverse, z)
+    ground = lowest.copy()
+    rise = cell * np.tan(np.radians(GROUND_MAX_SLOPE))
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            other = cells + di * width + dj
+            pos = np.minimum(np.searchsorted(cells, other), len(cells) - 1)
+            hit = cells[pos] == other
+            ground[hit] = np.minimum(ground[hit], lowest[pos[hit]] + rise * np.hypot(di, dj))
+    return z <= ground[inverse] + clearance
 
 
 def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[np.ndarray]:
