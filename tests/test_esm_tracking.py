@@ -256,3 +256,27 @@ def test_local_ground_mask_sparse_columns_equal_the_dense_grid(monkeypatch):
     sparse = local_segments.local_ground_mask(pts, 0.1, 0.3)
     assert calls
     assert np.array_equal(dense, sparse) and 0 < dense.sum() < len(pts)
+
+
+#: sha256 (16 hex) of short_maps' local maps (keys, counts, last_seen, centroids) and of the
+#: ESM features that do not go through BLAS (ids, sizes, world centroids, described), written
+#: at main 2de532e before the local-map / segmentation / tracking speed-ups of issue 41: they
+#: must leave every byte as it was (embeddings are left out: float32 BLAS bits may differ
+#: between machines; scripts/bench_esm_localmaps.py check compares localisations)
+GEOMETRY_DIGEST = "4af0d2eeb4088c21"
+
+
+def test_local_map_geometry_and_segment_features_are_pinned(short_maps):
+    import hashlib
+
+    esm = get_descriptor("esm").bind_exclusion(6)
+    digest = hashlib.sha256()
+    segments = 0
+    for f in short_maps:
+        out = esm.compute(f)
+        segments += len(out["ids"])
+        for a in (f.keys, f.counts, f.last_seen, f.points, out["ids"], out["sizes"],
+                  out["world"], out["described"]):
+            digest.update(np.ascontiguousarray(a).tobytes())
+    assert segments == 157
+    assert digest.hexdigest()[:16] == GEOMETRY_DIGEST
