@@ -237,3 +237,15 @@ def test_consistent_sets_equal_the_dense_sets(grid):
             ref = reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds)
             assert same_sets(new, ref)
             assert len(ref) > 0 or min_consistent > 1
+
+
+def test_comparison_limit_is_the_threshold_numpy_compares_float32_with():
+    from lidar_iris_eval.descriptors.esm.target_map import _comparison_limit
+
+    below = np.float32(0.6)  # 0.60000002384..., above the float64 0.6
+    assert float(below) > 0.6
+    # a Python float meets a float32 array as float32 (NEP 50): the float32 0.6 passes
+    assert bool(np.array([below]) <= 0.6) and _comparison_limit(0.6) == float(below)
+    # a float64 scalar does not: the float32 0.6 is above it
+    assert not bool(np.array([below]) <= np.float64(0.6))
+    assert _comparison_limit(np.float64(0.6)) == 0.6

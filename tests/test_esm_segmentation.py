@@ -131,3 +131,21 @@ def test_yaw_alignment_removes_the_heading():
     assert np.allclose(yaw_align(centred)[:, 2], centred[:, 2])
     assert np.allclose(np.linalg.norm(yaw_align(centred), axis=1),
                        np.linalg.norm(centred, axis=1))
+
+
+def test_euclidean_clusters_are_scipys_components_and_numbering():
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    # hand case: points 0-1-3 chained, 2 alone, 4-5 a pair: numbered by smallest index
+    pts = np.array([[0, 0, 0], [0.15, 0, 0], [5, 0, 0], [0.3, 0, 0], [9, 0, 0], [9.1, 0, 0]])
+    assert euclidean_clusters(pts, 0.2).tolist() == [0, 0, 1, 0, 2, 2]
+    rng = np.random.default_rng(4)
+    for _ in range(50):  # the oracle: scipy's sparse-graph components, same labels
+        n = int(rng.integers(1, 300))
+        p = rng.uniform(0, rng.uniform(0.5, 8.0), (n, 3))
+        pairs = cKDTree(p).query_pairs(0.4, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        assert np.array_equal(euclidean_clusters(p, 0.4),
+                              connected_components(graph, directed=False)[1])

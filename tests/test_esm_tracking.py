@@ -199,3 +199,84 @@ def test_bad_describe_rule_is_one_error():
         ESMParams(describe="sometimes")
     with pytest.raises(LirisError, match="esm.growth"):
         ESMParams(growth=-1.0)
+
+
+def test_local_ground_mask_on_hand_columns():
+    from lidar_iris_eval.descriptors.esm.local_segments import local_ground_mask
+
+    rise = np.tan(np.radians(15.0))  # 1 m columns: a neighbour carries +0.268 m (x sqrt 2 diag)
+    pts = np.array([
+        [0.5, 0.5, 0.0], [0.5, 0.5, 0.25], [0.5, 0.5, 1.0],  # column (0, 0): lowest 0
+        [1.5, 0.5, 0.9], [1.5, 0.5, 1.4],  # (1, 0): a car roof; ground = 0 + rise = 0.268
+        [1.5, 1.5, 0.6],  # (1, 1): diagonal to (0, 0): 0 + rise * sqrt 2 = 0.379
+        [5.5, 5.5, 2.0],  # isolated column: its own lowest voxel is ground
+    ])
+    mask = local_ground_mask(pts, 1.0, 0.3)
+    # (0,0): 0 and 0.25 <= 0.3; 1.0 not. (1,0): 0.9 > 0.268 + 0.3 = 0.568, 1.4 not.
+    # (1,1): 0.6 <= 0.379 + 0.3 = 0.679. isolated: 2.0 <= 2.0 + 0.3
+    assert mask.tolist() == [True, True, False, False, False, True, True]
+    assert 0.6 > rise + 0.3  # (1,1) is ground only through the diagonal neighbour
+    assert local_ground_mask(np.zeros((0, 3)), 1.0, 0.3).shape == (0,)
+
+
+def test_density_normalised_clusters_group_coarse_voxels():
+    import dataclasses as dc
+
+    from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams
+
+    # fine 0.1 m voxels of two 0.2 m-coarse blobs 1 m apart (one coarse voxel holds 8
+    # fine ones), plus a lone coarse voxel: radius 0.3 m joins neighbouring coarse voxels
+    fine = np.concatenate([_box((0, 0, 0), (4, 4, 2)), _box((14, 0, 0), (4, 2, 2)),
+                           _box((40, 40, 0), (2, 2, 2))])
+    pts = (fine + 0.5) * 0.1
+    params = dc.replace(SegmentParams(), radius=0.3, cluster_voxel=0.2, min_points=2,
+                        max_points=4)
+    members = local_map_clusters(pts, params)
+    # coarse voxels: blob 1 = 2 x 2 x 1 = 4, blob 2 = 2 x 1 x 1 = 2, lone = 1 (< min_points)
+    assert [len(m) for m in members] == [32, 16]
+    assert np.array_equal(members[0], np.arange(32)) and np.array_equal(members[1],
+                                                                        np.arange(32, 48))
+    params4 = dc.replace(params, max_points=3)  # blob 1 has 4 coarse voxels: too large
+    assert [len(m) for m in local_map_clusters(pts, params4)] == [16]
+
+
+def test_local_ground_mask_sparse_columns_equal_the_dense_grid(monkeypatch):
+    from lidar_iris_eval.descriptors.esm import local_segments
+
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(-20, 20, (3000, 2)), rng.normal(0, 0.5, 3000)])
+    calls = []
+    real = local_segments._sparse_ground_mask
+    monkeypatch.setattr(local_segments, "_sparse_ground_mask",
+                        lambda *a: calls.append(1) or real(*a))
+    # 0.1 m columns: a 400 x 400 grid, 160k cells > 4 per point: dense only below the limit
+    dense = local_segments.local_ground_mask(pts, 0.1, 0.3)
+    assert not calls
+    monkeypatch.setattr(local_segments, "DENSE_COLUMNS", 0)
+    sparse = local_segments.local_ground_mask(pts, 0.1, 0.3)
+    assert calls
+    assert np.array_equal(dense, sparse) and 0 < dense.sum() < len(pts)
+
+
+#: sha256 (16 hex) of short_maps' local maps (keys, counts, last_seen, centroids) and of the
+#: ESM features that do not go through BLAS (ids, sizes, world centroids, described), written
+#: at main 2de532e before the local-map / segmentation / tracking speed-ups of issue 41: they
+#: must leave every byte as it was (embeddings are left out: float32 BLAS bits may differ
+#: between machines; scripts/bench_esm_localmaps.py check compares localisations)
+GEOMETRY_DIGEST = "4af0d2eeb4088c21"
+
+
+def test_local_map_geometry_and_segment_features_are_pinned(short_maps):
+    import hashlib
+
+    esm = get_descriptor("esm").bind_exclusion(6)
+    digest = hashlib.sha256()
+    segments = 0
+    for f in short_maps:
+        out = esm.compute(f)
+        segments += len(out["ids"])
+        for a in (f.keys, f.counts, f.last_seen, f.points, out["ids"], out["sizes"],
+                  out["world"], out["described"]):
+            digest.update(np.ascontiguousarray(a).tobytes())
+    assert segments == 157
+    assert digest.hexdigest()[:16] == GEOMETRY_DIGEST

@@ -125,3 +125,56 @@ def test_memory_is_bounded_by_the_cylinder():
     poses = np.stack([pose_at(2.0 * i) for i in range(200)])
     sizes = [len(m) for m, _ in local_maps(lambda j: scans[j], poses, s, 0, 200)]
     assert max(sizes) <= 2 * 21  # two points per scan, scans 2 m apart, 20 m behind
+
+
+def _naive_window(steps, window: int, voxel_mm: int, radius: float):
+    """The grid's state rebuilt from raw points after every step (no incremental bookkeeping):
+    each stored scan keeps its millimetre points; a crop removes the points of far voxels."""
+    stored: list[tuple[int, np.ndarray]] = []
+    out = []
+    for frame, pts, centre in steps:
+        stored.append((frame, np.rint(pts * 1000.0).astype(np.int64)))
+        stored = [(f, mm) for f, mm in stored if f > frame - window]
+        kept = []
+        for f, mm in stored:
+            ij = np.floor_divide(mm, voxel_mm)[:, :2]
+            c = (ij + 0.5) * (voxel_mm / 1000.0)
+            kept.append((f, mm[((c - centre) ** 2).sum(1) <= radius**2]))
+        stored = kept
+        allmm = np.concatenate([mm for _, mm in stored])
+        frames = np.concatenate([np.full(len(mm), f) for f, mm in stored])
+        keys = encode(np.floor_divide(allmm, voxel_mm))
+        uniq, inv = np.unique(keys, return_inverse=True)
+        sums = np.stack([np.bincount(inv, allmm[:, a].astype(float)) for a in range(3)], 1)
+        last = np.zeros(len(uniq), np.int64)
+        np.maximum.at(last, inv, frames)
+        out.append((uniq, np.bincount(inv), sums.astype(np.int64), last))
+    return out
+
+
+@pytest.mark.parametrize("compact", [True, False])
+def test_incremental_grid_equals_a_rebuild_from_raw_points(compact):
+    # scans overlapping in many voxels, a moving crop centre that cuts voxels of old scans
+    # (some of which later scans feed again), a window that drops scans
+    rng = np.random.default_rng(3)
+    steps = []
+    for i in range(14):
+        centre = np.array([0.7 * i, -0.3 * i])
+        pts = centre + rng.uniform(-6, 6, (300, 2))
+        pts = np.column_stack([pts, rng.uniform(-0.5, 0.5, 300)])
+        steps.append((i, np.round(pts, 2), centre))
+    g = VoxelWindow(window=4, voxel=0.5, radius=5.0)
+    cropped_some = False
+    for (frame, pts, centre), (keys, counts, sums, last) in zip(
+            steps, _naive_window(steps, 4, 500, 5.0), strict=True):
+        g.add(frame, pts)
+        g.drop_before(frame, compact=compact)  # False: the emptied voxels go at the crop
+        before = len(g)
+        g.crop(centre)
+        cropped_some |= len(g) < before
+        assert np.array_equal(g.keys, keys) and np.array_equal(g.counts, counts)
+        assert np.array_equal(g.sums, sums) and np.array_equal(g.last, last)
+        if frame % 3 == 0:  # stored_voxels compacts the stored scans: only now and then
+            assert g.stored_voxels() == sum(len(c.keys) for c in g.scans)
+            assert all(np.isin(c.keys, g.keys).all() for c in g.scans)
+    assert cropped_some

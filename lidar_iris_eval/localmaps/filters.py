@@ -33,16 +33,17 @@ class InputFilter:
     def apply(self, points: np.ndarray) -> np.ndarray:
         """The kept ``(M, 3)`` float64 points of ``(N, 3+)`` sensor-frame points."""
         pts = np.asarray(points, dtype=np.float64)[:, :3]
-        return pts[self.mask(pts)]
+        return np.compress(self.mask(pts), pts, axis=0)  # pts[mask], faster on (n, 3) rows
 
     def mask(self, points: np.ndarray) -> np.ndarray:
         """``(N,)`` True for the points :meth:`apply` keeps (in their order)."""
         pts = np.asarray(points, dtype=np.float64)[:, :3]
         keep = np.zeros(len(pts), bool)
         keep[:: max(1, int(self.every))] = True
-        keep &= np.isfinite(pts).all(axis=1)
-        keep &= pts[:, 2] >= self.min_z
-        keep &= np.hypot(pts[:, 0], pts[:, 1]) <= self.max_range
+        x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]  # column by column: no (n, 3) reduction
+        keep &= np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        keep &= z >= self.min_z
+        keep &= np.hypot(x, y) <= self.max_range
         return keep
 
 

@@ -12,7 +12,9 @@ of frame ``i`` is the same whether it was built from frame 0 or from frame
 3. **crop**: every voxel whose centre is farther than ``radius`` (horizontal)
    from pose ``i`` is removed for good, from the map and from the stored scans
    (SegMap drops far voxels the same way), so memory is bounded by the
-   cylinder, not the sequence.
+   cylinder, not the sequence. (A stored scan marks its cropped voxels dead and
+   compacts once a quarter of them are, or when it is dropped: a dead entry is never
+   subtracted, so the map is the same as with an immediate removal.)
 """
 
 from __future__ import annotations
@@ -45,8 +47,39 @@ def decode(keys: np.ndarray) -> np.ndarray:
 class _Contribution:
     frame: int
     keys: np.ndarray  # (m,) sorted unique
-    counts: np.ndarray  # (m,) int64
-    sums: np.ndarray  # (m, 3) int64 millimetres
+    #: (m,) int64 columns: points per voxel, then the x, y, z sums in millimetres (1-D
+    #: arrays: NumPy's boolean indexing and insertion are several times faster on them
+    #: than on the rows of an (m, k) array)
+    cols: list
+    #: True where a crop removed the voxel and the arrays were not compacted yet; a dead
+    #: entry is no contribution (its points left the map with the voxel)
+    dead: np.ndarray | None = None
+    n_dead: int = 0
+
+    @property
+    def counts(self) -> np.ndarray:
+        return self.cols[0]
+
+    @property
+    def sums(self) -> np.ndarray:
+        return np.stack(self.cols[1:], 1)
+
+    def kill(self, pos: np.ndarray) -> None:
+        """Mark the entries ``pos`` dead; compact once a quarter of the entries are."""
+        if self.dead is None:
+            self.dead = np.zeros(len(self.keys), bool)
+        pos = pos[~self.dead[pos]]
+        self.dead[pos] = True
+        self.n_dead += len(pos)
+        if 4 * self.n_dead >= len(self.keys):
+            self.compact()
+
+    def compact(self) -> None:
+        """Remove the dead entries (the arrays then hold exactly the live contribution)."""
+        if self.n_dead:
+            keep = ~self.dead
+            self.keys, self.cols = self.keys[keep], [c[keep] for c in self.cols]
+        self.dead, self.n_dead = None, 0
 
 
 @dataclass(frozen=True)
@@ -94,10 +127,26 @@ class VoxelWindow:
         if self.voxel_mm < 1:
             raise ValueError("voxel must be at least 1 mm")
         self.keys = np.zeros(0, np.int64)
-        self.counts = np.zeros(0, np.int64)
-        self.sums = np.zeros((0, 3), np.int64)
-        self.last = np.zeros(0, np.int64)
+        # per voxel, five 1-D int64 columns: count, the x, y, z sums (mm), last frame
+        # (1-D: a removal or an insertion is a fast copy per column; see _Contribution)
+        self.cols = [np.zeros(0, np.int64) for _ in range(5)]
         self.scans: deque[_Contribution] = deque()
+        self._zeros = False  # voxels with no point left wait for the next crop
+
+    @property
+    def counts(self) -> np.ndarray:
+        """``(M,)`` points per voxel."""
+        return self.cols[0]
+
+    @property
+    def sums(self) -> np.ndarray:
+        """``(M, 3)`` integer sums of the voxels' coordinates in millimetres (a copy)."""
+        return np.stack(self.cols[1:4], 1)
+
+    @property
+    def last(self) -> np.ndarray:
+        """``(M,)`` the latest frame whose scan fed each voxel."""
+        return self.cols[4]
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -110,73 +159,107 @@ class VoxelWindow:
             raise ValueError(f"frames must increase: {frame} after {self.scans[-1].frame}")
         mm = np.rint(np.asarray(world_points, dtype=np.float64)[:, :3] * 1000.0).astype(np.int64)
         keys = encode(np.floor_divide(mm, self.voxel_mm))
-        uniq, inv = np.unique(keys, return_inverse=True)
-        counts = np.bincount(inv, minlength=len(uniq)).astype(np.int64)
-        sums = np.zeros((len(uniq), 3), np.int64)
-        for axis in range(3):  # exact integer sums (bincount would go through float64)
-            order = np.argsort(inv, kind="stable")
-            bounds = np.concatenate([[0], np.cumsum(counts)])
-            csum = np.concatenate([[0], np.cumsum(mm[order, axis])])
-            sums[:, axis] = csum[bounds[1:]] - csum[bounds[:-1]]
-        self.scans.append(_Contribution(int(frame), uniq, counts, sums))
+        # one stable sort groups the points by voxel (the order of np.unique and of its
+        # inverse); the integer sums do not depend on the order within a voxel anyway
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
+        starts = np.flatnonzero(np.concatenate([[True], sorted_keys[1:] != sorted_keys[:-1]]))
+        starts = starts[: len(sorted_keys)]  # no group in an empty scan
+        uniq = sorted_keys[starts]
+        bounds = np.concatenate([starts, [len(sorted_keys)]])
+        cols = [np.diff(bounds).astype(np.int64)]
+        csum = np.zeros(len(keys) + 1, np.int64)
+        for axis in range(3):
+            np.cumsum(mm[order, axis], out=csum[1:])
+            cols.append(csum[bounds[1:]] - csum[bounds[:-1]])
+        self.scans.append(_Contribution(int(frame), uniq, cols))
         pos = np.searchsorted(self.keys, uniq)
         present = pos < len(self.keys)
         present[present] = self.keys[pos[present]] == uniq[present]
         hit = pos[present]
-        self.counts[hit] += counts[present]
-        self.sums[hit] += sums[present]
-        self.last[hit] = frame
+        for mine, theirs in zip(self.cols[:4], cols, strict=True):
+            mine[hit] += theirs[present]
+        self.cols[4][hit] = frame
         new = ~present
-        keys_all = np.concatenate([self.keys, uniq[new]])
-        order = np.argsort(keys_all, kind="stable")
-        self.keys = keys_all[order]
-        self.counts = np.concatenate([self.counts, counts[new]])[order]
-        self.sums = np.concatenate([self.sums, sums[new]])[order]
-        self.last = np.concatenate([self.last, np.full(int(new.sum()), frame, np.int64)])[order]
+        if new.any():  # merge the new voxels in place of sorting the whole map again
+            at = pos[new]
+            self.keys = np.insert(self.keys, at, uniq[new])
+            self.cols = [np.insert(mine, at, theirs[new])
+                         for mine, theirs in zip(self.cols[:4], cols, strict=True)] + [
+                np.insert(self.cols[4], at, np.int64(frame))]
 
-    def drop_before(self, frame: int) -> None:
-        """Drop every stored scan of a frame ``<= frame - window`` (the window rule)."""
+    def drop_before(self, frame: int, compact: bool = True) -> None:
+        """Drop every stored scan of a frame ``<= frame - window`` (the window rule).
+
+        ``compact=False`` leaves the voxels with no point left in the arrays until the
+        next :meth:`crop` removes them with the far ones (one copy per frame, not two);
+        the map is only read after that crop.
+        """
         while self.scans and self.scans[0].frame <= frame - self.window:
             c = self.scans.popleft()
-            pos = np.searchsorted(self.keys, c.keys)  # every key is present (invariant)
-            self.counts[pos] -= c.counts
-            self.sums[pos] -= c.sums
+            c.compact()
+            pos = np.searchsorted(self.keys, c.keys)  # every live key is present (invariant)
+            for mine, theirs in zip(self.cols[:4], c.cols, strict=True):
+                mine[pos] -= theirs
+            self._zeros = True
+        if compact and self._zeros:
             self._keep(self.counts > 0)
 
     def crop(self, centre_xy: np.ndarray) -> None:
         """Remove for good every voxel whose centre is farther than ``radius`` away."""
-        far = ~self._inside(self.keys, centre_xy)
-        if not far.any():
+        inside = self._inside(self.keys, centre_xy)
+        if self._zeros:
+            live = self.counts > 0
+            keep = inside & live
+            gone = self.keys[~inside & live]
+        else:
+            keep, gone = inside, self.keys[~inside]
+        if len(keep) and keep.all():
+            self._zeros = False
             return
-        self._keep(~far)
-        for c in self.scans:
-            keep = self._inside(c.keys, centre_xy)
-            if not keep.all():
-                c.keys, c.counts, c.sums = c.keys[keep], c.counts[keep], c.sums[keep]
+        self._keep(keep)
+        if not len(gone):
+            return
+        for c in self.scans:  # look the few leaving voxels up, not every stored voxel
+            pos = np.searchsorted(c.keys, gone)
+            found = pos < len(c.keys)
+            pos = pos[found]
+            pos = pos[c.keys[pos] == gone[found]]
+            if len(pos):
+                c.kill(pos)
 
     # ------------------------------------------------------------------ reading
 
     def centroids(self) -> np.ndarray:
         """``(M, 3)`` voxel centroids in metres (world frame), in key order."""
-        return self.sums / self.counts[:, None] / 1000.0
+        out = np.empty((len(self.keys), 3))
+        for axis in range(3):  # sum / count / 1000, the same float64 operations per element
+            out[:, axis] = self.cols[1 + axis] / self.cols[0] / 1000.0
+        return out
 
     def frames(self) -> tuple[int, ...]:
         return tuple(c.frame for c in self.scans)
 
     def stored_voxels(self) -> int:
-        """Voxels held by the stored scans (the memory besides the map itself)."""
+        """Voxels held by the stored scans (the memory besides the map itself); compacts them."""
+        for c in self.scans:
+            c.compact()
         return int(sum(len(c.keys) for c in self.scans))
 
     # ------------------------------------------------------------------ helpers
 
     def _inside(self, keys: np.ndarray, centre_xy: np.ndarray) -> np.ndarray:
-        centre = (decode(keys)[:, :2] + 0.5) * (self.voxel_mm / 1000.0)
-        d2 = ((centre - np.asarray(centre_xy, dtype=np.float64)[:2]) ** 2).sum(axis=1)
-        return d2 <= self.radius**2
+        k = np.asarray(keys, dtype=np.int64)
+        v = self.voxel_mm / 1000.0
+        c = np.asarray(centre_xy, dtype=np.float64)
+        # the two horizontal voxel indices only (decode's first two columns)
+        dx = (((k >> (2 * _BITS)) & _MASK) - _OFFSET + 0.5) * v - c[0]
+        dy = (((k >> _BITS) & _MASK) - _OFFSET + 0.5) * v - c[1]
+        return dx * dx + dy * dy <= self.radius**2
 
     def _keep(self, mask: np.ndarray) -> None:
-        self.keys, self.counts = self.keys[mask], self.counts[mask]
-        self.sums, self.last = self.sums[mask], self.last[mask]
+        self.keys, self.cols = self.keys[mask], [c[mask] for c in self.cols]
+        self._zeros = False
 
 
 class LocalMap:
@@ -194,7 +277,7 @@ class LocalMap:
         pose = np.asarray(pose, dtype=np.float64)
         kept = self.filter.apply(points)
         self.grid.add(frame, kept @ pose[:3, :3].T + pose[:3, 3])
-        self.grid.drop_before(frame)
+        self.grid.drop_before(frame, compact=False)
         self.grid.crop(pose[:2, 3])
 
     def frame(self, frame: int, pose: np.ndarray) -> LocalMapFrame:

@@ -30,6 +30,9 @@ from lidar_iris_eval.descriptors.esm.segmentation import (
 
 #: the steepest ground slope :func:`local_ground_mask` carries from a column to the next (deg)
 GROUND_MAX_SLOPE = 15.0
+#: :func:`local_ground_mask` holds a dense grid of columns up to this many cells (or 4 per
+#: point), else it works on the occupied columns only
+DENSE_COLUMNS = 1 << 22
 
 
 def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.ndarray:
@@ -47,13 +50,41 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) == 0:
         return np.zeros(0, bool)
-    ij = np.floor(pts[:, :2] / cell).astype(np.int64)
-    ij -= ij.min(axis=0) - 1  # a free border for the neighbours
-    width = int(ij[:, 1].max()) + 2
-    flat = ij[:, 0] * width + ij[:, 1]
+    # column by column: NumPy's reductions and ufuncs over an (n, 2) slice are several
+    # times slower than over its columns
+    i = np.floor(pts[:, 0] / cell).astype(np.int64)
+    j = np.floor(pts[:, 1] / cell).astype(np.int64)
+    i -= i.min() - 1  # a free border for the neighbours
+    j -= j.min() - 1
+    rows, width = int(i.max()) + 2, int(j.max()) + 2
+    flat = i * width + j
+    if rows * width > max(4 * len(pts), DENSE_COLUMNS):  # sparse columns: tiny cells
+        return _sparse_ground_mask(pts[:, 2], flat, width, cell, clearance)
+    # a dense grid of columns (the map is a bounded cylinder): empty columns stay +inf,
+    # and inf + rise is inf, so they never lower a neighbour
+    lowest = np.full(rows * width, np.inf)
+    np.minimum.at(lowest, flat, pts[:, 2])
+    lowest = lowest.reshape(rows, width)
+    ground = lowest.copy()
+    rise = cell * np.tan(np.radians(GROUND_MAX_SLOPE))
+    inner = ground[1:-1, 1:-1]
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            step = rise * np.hypot(di, dj)
+            np.minimum(inner, lowest[1 + di:rows - 1 + di, 1 + dj:width - 1 + dj] + step,
+                       out=inner)
+    return pts[:, 2] <= ground.reshape(-1)[flat] + clearance
+
+
+def _sparse_ground_mask(z: np.ndarray, flat: np.ndarray, width: int, cell: float,
+                        clearance: float) -> np.ndarray:
+    """:func:`local_ground_mask` over the occupied columns only (``flat``: each point's
+    column on a grid ``width`` wide with a free border), for grids too large to hold."""
     cells, inverse = np.unique(flat, return_inverse=True)
     lowest = np.full(len(cells), np.inf)
-    np.minimum.at(lowest, inverse, pts[:, 2])
+    np.minimum.at(lowest, inverse, z)
     ground = lowest.copy()
     rise = cell * np.tan(np.radians(GROUND_MAX_SLOPE))
     for di in (-1, 0, 1):
@@ -63,9 +94,8 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
             other = cells + di * width + dj
             pos = np.minimum(np.searchsorted(cells, other), len(cells) - 1)
             hit = cells[pos] == other
-            step = rise * np.hypot(di, dj)
-            ground[hit] = np.minimum(ground[hit], lowest[pos[hit]] + step)
-    return pts[:, 2] <= ground[inverse] + clearance
+            ground[hit] = np.minimum(ground[hit], lowest[pos[hit]] + rise * np.hypot(di, dj))
+    return z <= ground[inverse] + clearance
 
 
 def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[np.ndarray]:
@@ -93,11 +123,14 @@ def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[
             return []
     kept = pts[rows]
     if params.cluster_voxel > 0:
-        ijk = np.floor(kept / params.cluster_voxel).astype(np.int64)
-        _, coarse, n_fine = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
-        coarse = coarse.reshape(-1)
-        sums = np.zeros((len(n_fine), 3))
-        np.add.at(sums, coarse, kept)
+        i, j, k = (np.floor(kept[:, a] / params.cluster_voxel).astype(np.int64)
+                   for a in range(3))
+        i, j, k = i - i.min(), j - j.min(), k - k.min()
+        # one int64 per coarse voxel, in the lexicographic (i, j, k) order of the rows
+        flat = (i * (int(j.max()) + 1) + j) * (int(k.max()) + 1) + k
+        _, coarse, n_fine = np.unique(flat, return_inverse=True, return_counts=True)
+        # sums accumulated in row order, as np.add.at does
+        sums = np.stack([np.bincount(coarse, kept[:, a], len(n_fine)) for a in range(3)], 1)
         comp_coarse = euclidean_clusters(sums / n_fine[:, None], params.radius)
         counts = np.bincount(comp_coarse)
         comp = comp_coarse[coarse]

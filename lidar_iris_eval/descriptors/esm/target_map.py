@@ -55,6 +55,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -230,6 +231,9 @@ def _consistent_sets(qa: np.ndarray, tb: np.ndarray, t_world: np.ndarray, q_cent
     dq = _centroid_distances(q_cent[:, None], q_cent[None])  # (nq, nq)
     targets, t_of = np.unique(tb, return_inverse=True)
     t_cent = t_world[targets]
+    limit = _comparison_limit(threshold)
+    qa, tb = np.ascontiguousarray(qa, np.int64), np.ascontiguousarray(tb, np.int64)
+    src = np.ascontiguousarray(src, np.float64)
     out = []
     for lo in range(0, seeds, _SEED_BLOCK):
         block = np.arange(lo, min(lo + _SEED_BLOCK, seeds))
@@ -242,18 +246,54 @@ def _consistent_sets(qa: np.ndarray, tb: np.ndarray, t_world: np.ndarray, q_cent
             allowed = np.flatnonzero(ok[i])
             if len(allowed) + 1 < min_consistent:
                 continue
-            members = [seed]
-            while len(allowed):  # the next consistent correspondence in PROSAC order
-                c, rest = allowed[0], allowed[1:]
-                members.append(int(c))
-                keep = np.abs(_centroid_distances(src[c], src[rest]) - dq[qa[c], qa[rest]]) \
-                    <= threshold
-                keep &= qa[rest] != qa[c]
-                keep &= tb[rest] != tb[c]
-                allowed = rest[keep]
+            members = _grow(seed, allowed, src, dq, qa, tb, limit)
             if len(members) >= min_consistent:
-                out.append((seed, np.asarray(members)))
+                out.append((seed, members))
     return out
+
+
+@numba.njit(cache=True)
+def _grow(seed: int, allowed: np.ndarray, src: np.ndarray, dq: np.ndarray, qa: np.ndarray,
+          tb: np.ndarray, limit: float) -> np.ndarray:  # pragma: no cover - compiled
+    """One seed's greedy set (``_consistent_sets``' inner loop, compiled).
+
+    Takes the first allowed correspondence ``c`` and keeps of the rest those
+    consistent with it, until none is left; the distance is
+    :func:`_centroid_distances`' float32 arithmetic written per element (the
+    float64 difference rounded to float32, squares summed ``(x + y) + z``, a
+    float32 square root) and ``limit`` is the threshold in the type NumPy
+    compares a float32 array with (:func:`_comparison_limit`), so every
+    decision is the vectorised loop's.
+    """
+    members = np.empty(len(allowed) + 1, np.int64)
+    members[0] = seed
+    m = 1
+    rest = allowed.copy()
+    n = len(rest)
+    while n:
+        c = rest[0]
+        members[m] = c
+        m += 1
+        w = 0
+        for r in range(1, n):
+            x = rest[r]
+            if qa[x] == qa[c] or tb[x] == tb[c]:
+                continue
+            d0 = np.float32(src[c, 0] - src[x, 0])
+            d1 = np.float32(src[c, 1] - src[x, 1])
+            d2 = np.float32(src[c, 2] - src[x, 2])
+            dist = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+            if np.float64(abs(dist - dq[qa[c], qa[x]])) <= limit:
+                rest[w] = x
+                w += 1
+        n = w
+    return members[:m]
+
+
+def _comparison_limit(threshold: float) -> float:
+    """``threshold`` as NumPy compares it with a float32 array: a Python float is cast to
+    float32 (NEP 50), a NumPy float64 is not; returned as the float64 holding that value."""
+    return float(np.result_type(np.float32(0), threshold).type(threshold))
 
 
 def _one_per_query(resid: np.ndarray, qa: np.ndarray, threshold: float) -> np.ndarray:

@@ -117,9 +117,15 @@ class SegmentTracker:
             pos = np.searchsorted(self.keys, flat)
             pos = np.minimum(pos, len(self.keys) - 1)
             hit = self.keys[pos] == flat
-            pairs = np.stack([seg_of[hit], self.ids[pos[hit]]], 1)
-            if len(pairs):
-                uniq, shared = np.unique(pairs, axis=0, return_counts=True)
+            prev = self.ids[pos[hit]]
+            if len(prev):
+                # each (segment, previous id) pair packed into one int64 whose order is the
+                # pairs' lexicographic order (ids are >= 0), counted by one 1-D np.unique
+                base = int(prev.max()) + 1
+                if n * base >= 2**62:  # pragma: no cover - ids past 4e18 / segments
+                    raise RuntimeError("segment ids too large to pack")
+                packed, shared = np.unique(seg_of[hit] * base + prev, return_counts=True)
+                uniq = np.stack([packed // base, packed % base], 1)
                 # heir of each previous id: most shared voxels, then the earlier segment
                 order = np.lexsort((uniq[:, 0], -shared, uniq[:, 1]))
                 uniq = uniq[order]
