@@ -112,3 +112,65 @@ def test_bev_of_a_rotated_real_scan_is_the_rotated_image():
         return float(np.corrcoef(u.ravel(), v.ravel())[0, 1])
     assert corr(bev.bev_image(turned).astype(float), full_turned) > 0.9  # 0.966 measured
     assert corr(full, other) < 0.6  # 0.148 measured
+
+
+# ------------------------------------------------------------------ network vs torch
+
+
+def _torch_net(weights):
+    torch = pytest.importorskip("torch")
+    from lidar_iris_eval.descriptors.bevplace import torch_net
+
+    torch.set_num_threads(1)
+    net = torch_net.BEVPlaceNet().eval()
+    torch_net.load_numpy(net, weights)
+    return torch, net
+
+
+def _inputs() -> np.ndarray:
+    rng = np.random.default_rng(1)
+    imgs = [rng.integers(0, 256, (201, 201)).astype(np.uint8)]
+    imgs += [bev.bev_image(s) for s in _kitti_scans()]
+    return bev.network_input(np.stack(imgs))
+
+
+def test_numpy_forward_equals_torch_on_random_weights():
+    from lidar_iris_eval.descriptors.bevplace import network
+
+    w = network.random_weights(seed=5)
+    torch, net = _torch_net(w)
+    x = _inputs()
+    with torch.no_grad():
+        rem_theirs = net.rem(torch.from_numpy(x)).numpy()  # (B, 128, 50, 50)
+        theirs = net(torch.from_numpy(x)).numpy()
+    rem_ours = network.rem_features(w, x)
+    assert rem_ours.shape == (len(x), 50, 50, 128)
+    assert np.max(np.abs(rem_ours - rem_theirs.transpose(0, 2, 3, 1))) <= 1e-5
+    ours = network.forward(w, x)
+    assert ours.shape == (len(x), 8192)
+    assert np.max(np.abs(ours - theirs)) <= 1e-5
+    assert np.allclose(np.linalg.norm(ours, axis=1), 1.0, atol=1e-5)
+    d_ours = ((ours[:, None] - ours[None]) ** 2).sum(-1) + np.diag(np.full(len(ours), np.inf))
+    d_theirs = ((theirs[:, None] - theirs[None]) ** 2).sum(-1) + np.diag(
+        np.full(len(ours), np.inf))
+    assert (d_ours.argmin(1) == d_theirs.argmin(1)).all()
+    if len(x) > 1:  # images differ by more than the tolerance (random weights: not by much)
+        assert np.max(np.abs(ours[0] - ours[1])) > 2e-4
+
+
+def test_descriptor_is_invariant_to_a_quarter_turn_of_the_image():
+    """The eight warps of a quarter-turned image are the same eight images in another
+    order; warped back and max-pooled, the map is the turned map, pooled by NetVLAD."""
+    from lidar_iris_eval.descriptors.bevplace import network
+
+    w = network.random_weights(seed=0)
+    scans = _kitti_scans()
+    if scans:
+        img, other = bev.bev_image(scans[0]), bev.bev_image(scans[2])
+    else:
+        rng = np.random.default_rng(2)
+        img, other = (rng.integers(0, 256, (201, 201)).astype(np.uint8) for _ in range(2))
+    d = network.forward(w, bev.network_input(np.stack([img, np.rot90(img), other])))
+    same = float(((d[0] - d[1]) ** 2).sum())
+    far = float(((d[0] - d[2]) ** 2).sum())
+    assert same < 1e-3 * far, (same, far)
