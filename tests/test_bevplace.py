@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import pickle
 
 import numpy as np
 import pytest
-from conftest import KITTI
+from conftest import KITTI, assert_one_line_error, run_cli
+from test_overlap_transformer import hand_checkpoint  # a torch.save-style zip, torch-free
 
-from lidar_iris_eval.descriptors.bevplace import bev
+from lidar_iris_eval.descriptors import get_descriptor
+from lidar_iris_eval.descriptors.bevplace import bev, network
+from lidar_iris_eval.errors import LirisError
 
 SAMPLES = KITTI / "samples" / "00" / "velodyne"
 
@@ -135,18 +141,16 @@ def _inputs() -> np.ndarray:
 
 
 def test_numpy_forward_equals_torch_on_random_weights():
-    from lidar_iris_eval.descriptors.bevplace import network
-
     w = network.random_weights(seed=5)
     torch, net = _torch_net(w)
     x = _inputs()
-    with torch.no_grad():
-        rem_theirs = net.rem(torch.from_numpy(x)).numpy()  # (B, 128, 50, 50)
-        theirs = net(torch.from_numpy(x)).numpy()
+    with torch.no_grad():  # net(x) is net.pooling(net.rem(x)); one pass gives both
+        rem = net.rem(torch.from_numpy(x))  # (B, 128, 50, 50)
+        rem_theirs, theirs = rem.numpy(), net.pooling(rem).numpy()
     rem_ours = network.rem_features(w, x)
     assert rem_ours.shape == (len(x), 50, 50, 128)
     assert np.max(np.abs(rem_ours - rem_theirs.transpose(0, 2, 3, 1))) <= 1e-5
-    ours = network.forward(w, x)
+    ours = network.netvlad(w, rem_ours.reshape(len(x), -1, 128))  # network.forward's tail
     assert ours.shape == (len(x), 8192)
     assert np.max(np.abs(ours - theirs)) <= 1e-5
     assert np.allclose(np.linalg.norm(ours, axis=1), 1.0, atol=1e-5)
@@ -161,8 +165,6 @@ def test_numpy_forward_equals_torch_on_random_weights():
 def test_descriptor_is_invariant_to_a_quarter_turn_of_the_image():
     """The eight warps of a quarter-turned image are the same eight images in another
     order; warped back and max-pooled, the map is the turned map, pooled by NetVLAD."""
-    from lidar_iris_eval.descriptors.bevplace import network
-
     w = network.random_weights(seed=0)
     scans = _kitti_scans()
     if scans:
@@ -174,3 +176,118 @@ def test_descriptor_is_invariant_to_a_quarter_turn_of_the_image():
     same = float(((d[0] - d[1]) ** 2).sum())
     far = float(((d[0] - d[2]) ** 2).sum())
     assert same < 1e-3 * far, (same, far)
+
+
+# ------------------------------------------------------------------ weights files
+
+
+def test_hand_built_checkpoint_gives_the_same_descriptors_and_its_sha(tmp_path):
+    """The authors' layout ({"state_dict": ...} with DataParallel's "module." prefix),
+    written without torch, reads back to the very same network; the cache key is the
+    file's SHA-256."""
+    weights = network.random_weights(seed=2)
+    path = tmp_path / "model_best.pth.tar"
+    hand_checkpoint(path, {f"module.{k}": v for k, v in weights.items()})
+    from_file = get_descriptor("bevplace", weights=str(path))
+    generated = get_descriptor("bevplace", seed=2)
+    img = np.random.default_rng(4).integers(0, 256, (1, 201, 201)).astype(np.uint8)
+    assert np.array_equal(from_file.compute_images(img), generated.compute_images(img))
+    assert from_file.cache_token() == hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    assert generated.cache_token() == network.weights_digest(weights)[:16]
+    assert from_file.run_info() == {"weights": "model_best.pth.tar", "weights_trained": True,
+                                    "weights_sha256": from_file.cache_token()}
+    np.savez(tmp_path / "w.npz", **weights)
+    from_npz = get_descriptor("bevplace", weights=str(tmp_path / "w.npz"))
+    assert np.array_equal(from_npz.compute_images(img), generated.compute_images(img))
+
+
+def test_torch_saved_checkpoint_gives_the_torch_descriptors(tmp_path):
+    torch = pytest.importorskip("torch")
+    from lidar_iris_eval.descriptors.bevplace import torch_net
+
+    torch.manual_seed(0)
+    net = torch_net.BEVPlaceNet()
+    torch_net.load_numpy(net, network.random_weights(3))
+    path = tmp_path / "model_best.pth.tar"
+    # the authors save {"epoch", "state_dict", "optimizer", ...}; BatchNorm adds
+    # num_batches_tracked (int64), which the reader keeps and the network ignores
+    torch.save({"epoch": 7, "state_dict": net.state_dict(), "best_score": 0.9}, path)
+    desc = get_descriptor("bevplace", preset="paper", weights=str(path))
+    img = np.random.default_rng(2).integers(0, 256, (1, 201, 201)).astype(np.uint8)
+    with torch.no_grad():
+        ref = net.eval()(torch.from_numpy(bev.network_input(img))).numpy()
+    assert np.max(np.abs(desc.compute_images(img) - ref)) <= 1e-5
+
+
+@pytest.mark.parametrize("kind", ["truncated", "not-zip", "missing", "wrong-model", "evil"])
+def test_bad_weights_are_one_error_line(tmp_path, capsys, kind):
+    path = tmp_path / "w.pth.tar"
+    if kind == "truncated":
+        hand_checkpoint(path, {"a": np.zeros(1000, np.float32)})
+        path.write_bytes(path.read_bytes()[:-300])
+    elif kind == "not-zip":
+        path.write_text("hello")
+    elif kind == "wrong-model":  # an OverlapTransformer layer is not BEVPlace++'s
+        hand_checkpoint(path, {"conv1.weight": np.zeros((16, 1, 5, 1), np.float32)})
+    elif kind == "evil":  # a pickle that would run a command is refused unrun
+        marker = tmp_path / "pwned"
+        path.write_bytes(pickle.dumps(_Boom(marker), protocol=2))
+    desc = get_descriptor("bevplace", weights=str(path))
+    with pytest.raises(LirisError, match="bevplace.weights="):
+        desc.cache_token()
+    from lidar_iris_eval.simulate.pipeline import simulate_sequence
+
+    seq = simulate_sequence(tmp_path / "seq", "tiny-mixed", frames=3, azimuth_steps=256)
+    code, _, err = run_cli(["extract", seq, "-d", "bevplace", "--param",
+                            f"bevplace.weights={path}", "--cache-dir", tmp_path / "c", "-q"],
+                           capsys)
+    assert_one_line_error(code, err, "bevplace.weights=", str(path))
+    if kind == "evil":
+        assert "refused" in err and not (tmp_path / "pwned").exists()
+
+
+class _Boom:
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+
+        return (os.system, (f"touch {self.marker}",))
+
+
+# ------------------------------------------------------------------ through liris eval
+
+
+def test_eval_runs_protocol_1(tmp_path, capsys):
+    from lidar_iris_eval.simulate.pipeline import simulate_sequence
+
+    # the first tiny-mixed frames hold no revisit: a short exclusion window makes
+    # neighbouring frames the loops (the run, not the score, is what this checks)
+    seq = simulate_sequence(tmp_path / "seq", "tiny-mixed", frames=6, azimuth_steps=512)
+    out = tmp_path / "run"
+    code, _, err = run_cli(["eval", seq, "-d", "bevplace", "--protocol", "1", "--exclude", "2",
+                            "--cache-dir", tmp_path / "cache", "--out", out, "-q"], capsys)
+    assert code == 0, err
+    assert "bevplace.weights=random-init" in err and "NOT a trained model" in err
+    rows = [r for r in json.loads((out / "metrics.json").read_text())["results"]
+            if r["descriptor"] == "bevplace"]
+    assert [r["protocol"] for r in rows] == [1]
+    assert rows[0]["weights"] == "random-init" and rows[0]["weights_trained"] is False
+    assert rows[0]["weights_sha256"] == get_descriptor("bevplace").cache_token()
+    assert 0.0 < rows[0]["f1_max"] <= 1.0
+
+
+@pytest.mark.parametrize("metric", ["l2sq", "cosine"])
+def test_distances_agree_and_the_method_pickles(metric):
+    desc = get_descriptor("bevplace", metric=metric)
+    rng = np.random.default_rng(9)
+    d = rng.normal(size=(4, 8192))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    clone = pickle.loads(pickle.dumps(desc))
+    full, _ = clone.pairwise(d, d)
+    for i in range(4):
+        assert np.array_equal(desc.distances(d[i], d)[0], full[i])
+        assert desc.distance(d[i], d[2])[0] == full[i, 2]
+    cos = d @ d.T
+    assert np.allclose(full, {"l2sq": 2 - 2 * cos, "cosine": 1 - cos}[metric], atol=1e-9)

@@ -28,6 +28,7 @@ from lidar_iris_eval.descriptors import checkpoint
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.overlap_transformer import network, projection
 from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks
+from lidar_iris_eval.descriptors.vector_common import vector_rows as _rows
 from lidar_iris_eval.errors import LirisError, warn
 
 RANDOM_INIT = "random-init"
@@ -68,22 +69,6 @@ class OverlapTransformerParams:
     weights: str = RANDOM_INIT
     seed: int = 0
     metric: str = "l2sq"
-
-
-def _rows(query: np.ndarray, rows: np.ndarray, metric: str = "l2sq") -> np.ndarray:
-    """Distance of ``query`` to each row of ``rows`` (any leading shape), in float64.
-
-    The single-pair, batched and pairwise distances all reduce through this, so
-    they agree bit for bit.
-    """
-    q = np.asarray(query, dtype=np.float64)
-    r = np.asarray(rows, dtype=np.float64)
-    if metric == "cosine":
-        return 1.0 - np.sum(q * r, axis=-1)
-    diff = r - q
-    diff *= diff
-    sq = np.sum(diff, axis=-1)
-    return sq if metric == "l2sq" else np.sqrt(sq)
 
 
 class OverlapTransformer(Descriptor):
