@@ -62,11 +62,12 @@ def voxel_means(points: np.ndarray, voxel_size: float = VOXEL_SIZE) -> np.ndarra
     if len(pts) == 0:
         return np.zeros((0, 3))
     start = pts.min(axis=0) - voxel_size * 0.5
-    keys = np.floor((pts - start) / voxel_size).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, pts)
+    keys = np.floor((pts - start) / voxel_size).astype(np.int64)  # >= 0 per axis
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]  # one int64 per voxel
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    sums = np.stack([np.bincount(inverse, weights=pts[:, a], minlength=len(counts))
+                     for a in range(3)], axis=1)
     return sums / counts[:, None]
 
 

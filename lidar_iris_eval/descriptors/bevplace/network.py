@@ -40,6 +40,7 @@ import functools
 import hashlib
 
 import numpy as np
+from scipy import sparse
 
 ROTATIONS, CLUSTERS, DIM = 8, 64, 128
 BN_EPS, NORM_EPS, CUBIC_A = 1e-5, 1e-12, -0.75
@@ -190,40 +191,82 @@ def rotation_theta(angle: np.float32) -> tuple[float, ...]:
     return (float(c), float(s), 0.0, float(-s), float(c), 0.0)
 
 
+@functools.lru_cache(maxsize=64)
+def _sampling_matrix(theta: tuple[float, ...], size_in: tuple[int, int],
+                     size_out: tuple[int, int]) -> sparse.csr_matrix:
+    """:func:`sampler` as a sparse ``(P_out, P_in)`` matrix (taps outside dropped)."""
+    index, weight = sampler(theta, size_in, size_out)
+    rows = np.broadcast_to(np.arange(index.shape[1]), index.shape)
+    keep = weight != 0
+    return sparse.csr_matrix((weight[keep], (rows[keep], index[keep])),
+                             shape=(index.shape[1], size_in[0] * size_in[1]),
+                             dtype=np.float32)
+
+
 def warp(x: np.ndarray, theta: tuple[float, ...], size_out: tuple[int, int]) -> np.ndarray:
-    """Bicubic resampling of ``(N, H, W, C)`` maps to ``(N, h_out, w_out, C)``."""
+    """Bicubic resampling of ``(N, H, W, C)`` maps to ``(N, h_out, w_out, C)``.
+
+    One sparse product (16 taps a row) for all maps and channels at once.
+    """
     n, h, w, c = x.shape
-    index, weight = sampler(tuple(theta), (h, w), tuple(size_out))
-    flat = x.reshape(n, h * w, c)
-    out = np.zeros((n, index.shape[1], c), dtype=np.float32)
-    for k in range(16):
-        out += flat[:, index[k]] * weight[k][None, :, None]
-    return out.reshape(n, size_out[0], size_out[1], c)
+    mat = _sampling_matrix(tuple(theta), (h, w), tuple(size_out))
+    flat = np.ascontiguousarray(x.reshape(n, h * w, c).transpose(1, 0, 2)).reshape(h * w, n * c)
+    out = np.asarray(mat @ flat, dtype=np.float32).reshape(-1, n, c).transpose(1, 0, 2)
+    return np.ascontiguousarray(out).reshape(n, size_out[0], size_out[1], c)
 
 
 # ------------------------------------------------------------------ encoder
 
 
 def _conv(x: np.ndarray, kernel: np.ndarray, stride: int, pad: int) -> np.ndarray:
-    """2-D convolution of ``(N, H, W, C)`` by ``(out, C, k, k)``, no bias (im2col + GEMM)."""
+    """2-D convolution of ``(N, H, W, C)`` by ``(out, C, k, k)``, no bias.
+
+    Stride 1 (14 of the 17 convolutions): one GEMM per tap on contiguous slices
+    of the flattened padded batch (a tap is a fixed offset ``i * W_pad + j``
+    there), summed, then the valid rows kept: no im2col copy, whose scattered
+    writes cost 7x the GEMMs. Strided ones: im2col and one GEMM.
+    """
     n, h, w, c = x.shape
     c_out, _, k, _ = kernel.shape
     if pad:
         x = np.pad(x, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
-    h_out, w_out = (h + 2 * pad - k) // stride + 1, (w + 2 * pad - k) // stride + 1
-    cols = np.empty((n, h_out, w_out, k, k, c), dtype=np.float32)
-    for i in range(k):
-        for j in range(k):
-            cols[:, :, :, i, j, :] = x[:, i: i + stride * (h_out - 1) + 1: stride,
-                                       j: j + stride * (w_out - 1) + 1: stride, :]
+    hp, wp = h + 2 * pad, w + 2 * pad
+    h_out, w_out = (hp - k) // stride + 1, (wp - k) // stride + 1
+    if stride == 1:
+        flat = x.reshape(n * hp * wp, c)
+        span = n * hp * wp - ((k - 1) * wp + (k - 1))
+        taps = np.ascontiguousarray(kernel.transpose(2, 3, 1, 0))  # (k, k, C, out)
+        out = np.zeros((n * hp * wp, c_out), dtype=np.float32)
+        for i in range(k):
+            for j in range(k):
+                off = i * wp + j
+                out[:span] += flat[off: off + span] @ taps[i, j]
+        return out.reshape(n, hp, wp, c_out)[:, :h_out, :w_out]
+    # im2col: for each output pixel and kernel row, the k pixels of a padded row are
+    # k * C contiguous floats, so the copy moves runs of k * C (not C) floats
+    x = np.ascontiguousarray(x, dtype=np.float32)
+    s_n, s_h, s_w, s_c = x.strides
+    view = np.lib.stride_tricks.as_strided(
+        x, shape=(n, h_out, w_out, k, k * c),
+        strides=(s_n, stride * s_h, stride * s_w, s_h, s_c), writeable=False)
+    cols = view.reshape(n * h_out * w_out, k * k * c)  # one copy, (i, j, channel) order
     mat = np.ascontiguousarray(kernel.transpose(2, 3, 1, 0).reshape(k * k * c, c_out))
-    return (cols.reshape(-1, k * k * c) @ mat).reshape(n, h_out, w_out, c_out)
+    return (cols @ mat).reshape(n, h_out, w_out, c_out)
 
 
-def _norm(w: dict, prefix: str, x: np.ndarray) -> np.ndarray:
-    """Batch norm in eval mode: running statistics, eps 1e-5."""
-    scale = w[prefix + "weight"] / np.sqrt(w[prefix + "running_var"] + np.float32(BN_EPS))
-    return (x - w[prefix + "running_mean"]) * scale + w[prefix + "bias"]
+def _conv_norm(w: dict, conv: str, norm: str, x: np.ndarray, stride: int,
+               pad: int) -> np.ndarray:
+    """Convolution then batch norm in eval mode (running statistics, eps 1e-5).
+
+    The norm's per-channel scale ``gamma / sqrt(var + eps)`` is folded into the
+    kernel and its shift ``beta - mean * scale`` added after: one pass over the
+    output instead of two.
+    """
+    scale = w[norm + "weight"] / np.sqrt(w[norm + "running_var"] + np.float32(BN_EPS))
+    shift = w[norm + "bias"] - w[norm + "running_mean"] * scale
+    out = _conv(x, w[conv] * scale[:, None, None, None], stride, pad)
+    out += shift
+    return out
 
 
 def _relu(x: np.ndarray) -> np.ndarray:
@@ -245,17 +288,17 @@ def _maxpool(x: np.ndarray) -> np.ndarray:
 
 def encoder(w: dict, x: np.ndarray) -> np.ndarray:
     """ResNet-34 up to ``layer2`` on ``(N, H, W, 3)``: ``(N, H/8, W/8, 128)`` (rounded up)."""
-    x = _relu(_norm(w, "rem.encoder.1.", _conv(x, w["rem.encoder.0.weight"], 2, 3)))
-    x = _maxpool(x)
+    x = _maxpool(_relu(_conv_norm(w, "rem.encoder.0.weight", "rem.encoder.1.", x, 2, 3)))
     for prefix, blocks, _c_in, _c_out, stride in LAYERS:
         for b in range(blocks):
             p = f"{prefix}.{b}."
             s = stride if b == 0 else 1
-            y = _relu(_norm(w, p + "bn1.", _conv(x, w[p + "conv1.weight"], s, 1)))
-            y = _norm(w, p + "bn2.", _conv(y, w[p + "conv2.weight"], 1, 1))
+            y = _relu(_conv_norm(w, p + "conv1.weight", p + "bn1.", x, s, 1))
+            y = _conv_norm(w, p + "conv2.weight", p + "bn2.", y, 1, 1)
             if p + "downsample.0.weight" in w:
-                x = _norm(w, p + "downsample.1.", _conv(x, w[p + "downsample.0.weight"], s, 0))
-            x = _relu(y + x)
+                x = _conv_norm(w, p + "downsample.0.weight", p + "downsample.1.", x, s, 0)
+            y += x
+            x = _relu(y)
     return x
 
 
