@@ -24,6 +24,7 @@ _REGISTRY: dict[str, str] = {
     "gosmatch": "lidar_iris_eval.descriptors.gosmatch:GOSMatch",
     "esm": "lidar_iris_eval.descriptors.esm:ESM",
     "overlap-transformer": "lidar_iris_eval.descriptors.overlap_transformer:OverlapTransformer",
+    "bevplace": "lidar_iris_eval.descriptors.bevplace:BEVPlace",
     # optional extra "mapclosures"; without it -d mapclosures is one error line
     "mapclosures": "lidar_iris_eval.descriptors.mapclosures:MapClosures",
 }

@@ -55,3 +55,21 @@ def pairwise_blocks(kernel: Callable[[np.ndarray, np.ndarray], np.ndarray],
         q = queries[start : start + block]
         out[start : start + len(q)] = kernel(q[:, None, :], database[None, :, :])
     return out, np.full((n_q, n_m), np.nan)
+
+
+def vector_rows(query: np.ndarray, rows: np.ndarray, metric: str = "l2sq") -> np.ndarray:
+    """Distance of ``query`` to each row of ``rows`` (any leading shape), in float64.
+
+    The single-pair, batched and pairwise distances all reduce through this, so
+    they agree bit for bit. ``metric``: ``"l2sq"`` (faiss' ``IndexFlatL2``, what the
+    learned methods' authors rank with), ``"l2"`` or ``"cosine"`` (``1 - q . r``, for
+    unit vectors).
+    """
+    q = np.asarray(query, dtype=np.float64)
+    r = np.asarray(rows, dtype=np.float64)
+    if metric == "cosine":
+        return 1.0 - np.sum(q * r, axis=-1)
+    diff = r - q
+    diff *= diff
+    sq = np.sum(diff, axis=-1)
+    return sq if metric == "l2sq" else np.sqrt(sq)

@@ -18,16 +18,17 @@ MODEL_CARD.md. The SHA-256 of the weights enters the cache key.
 from __future__ import annotations
 
 import functools
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from lidar_iris_eval.descriptors import checkpoint
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.descriptors.overlap_transformer import checkpoint, network, projection
+from lidar_iris_eval.descriptors.overlap_transformer import network, projection
 from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks
+from lidar_iris_eval.descriptors.vector_common import vector_rows as _rows
 from lidar_iris_eval.errors import LirisError, warn
 
 RANDOM_INIT = "random-init"
@@ -68,22 +69,6 @@ class OverlapTransformerParams:
     weights: str = RANDOM_INIT
     seed: int = 0
     metric: str = "l2sq"
-
-
-def _rows(query: np.ndarray, rows: np.ndarray, metric: str = "l2sq") -> np.ndarray:
-    """Distance of ``query`` to each row of ``rows`` (any leading shape), in float64.
-
-    The single-pair, batched and pairwise distances all reduce through this, so
-    they agree bit for bit.
-    """
-    q = np.asarray(query, dtype=np.float64)
-    r = np.asarray(rows, dtype=np.float64)
-    if metric == "cosine":
-        return 1.0 - np.sum(q * r, axis=-1)
-    diff = r - q
-    diff *= diff
-    sq = np.sum(diff, axis=-1)
-    return sq if metric == "l2sq" else np.sqrt(sq)
 
 
 class OverlapTransformer(Descriptor):
@@ -153,19 +138,11 @@ class OverlapTransformer(Descriptor):
 
     def _read_file(self, path: Path) -> tuple[dict, str]:
         try:
-            data = path.read_bytes()
+            return checkpoint.read_weights_file(path)
         except OSError as err:
             raise self._error(f"cannot read {path} ({err.strerror or err})") from None
-        digest = hashlib.sha256(data).hexdigest()
-        try:
-            if path.suffix == ".npz":
-                with np.load(path, allow_pickle=False) as z:
-                    return {k: z[k] for k in z.files}, digest
-            return checkpoint.state_dict(checkpoint.read_checkpoint(path)), digest
         except checkpoint.CheckpointError as err:
             raise self._error(f"{path}: {err}") from None
-        except (OSError, ValueError) as err:
-            raise self._error(f"{path}: unreadable weights ({err})") from None
 
     def cache_token(self) -> str:
         """SHA-256 (16 hex) of the weights: the file's bytes, or the random arrays."""
