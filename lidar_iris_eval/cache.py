@@ -363,12 +363,24 @@ class DescriptorCache:
         return (self.rows_dir(key, family) / f"{key.digest()}.npz").is_file()
 
     def store_rows(self, key: CacheKey, family: str, ids: np.ndarray) -> None:
-        """Record the scan identities of ``key``'s complete file (one row each, in order)."""
+        """Record the scan identities of ``key``'s complete file (one row each, in order).
+
+        The index only saves work later, so failing to write it (a full disk, a
+        folder of another user's) is a warning, never the end of a run whose
+        descriptors are already stored. Temporary files of killed writers in the
+        index folder are removed first, as :meth:`check_writable` does in the root.
+        """
         if not self.writable(key):
             return
-        path = self.rows_dir(key, family) / f"{key.digest()}.npz"
-        write_arrays(path, {"scan_ids": np.ascontiguousarray(ids, dtype=np.uint8)},
-                     {"key": asdict(key), "digest": key.digest(), "family": family})
+        folder = self.rows_dir(key, family)
+        path = folder / f"{key.digest()}.npz"
+        remove_stale_temps(folder)
+        try:
+            write_arrays(path, {"scan_ids": np.ascontiguousarray(ids, dtype=np.uint8)},
+                         {"key": asdict(key), "digest": key.digest(), "family": family})
+        except (LirisError, OSError) as err:
+            warn(folder, f"cannot write the cache row index ({getattr(err, 'problem', err)}); "
+                         "other frame selections will compute these scans again")
 
     def find_rows(self, key: CacheKey, family: str,
                   ids: np.ndarray) -> list[tuple[CacheKey, np.ndarray]]:

@@ -228,3 +228,22 @@ def test_esm_on_local_maps_does_not_reuse(sim, tmp_path, computed):
     assert computed == {"esm": 8} and got.reused_rows == 0 and not got.from_cache
     assert not any(p.name.startswith("esm-") and p.suffix == ".rows"
                    for p in (tmp_path / "cache").iterdir())
+
+
+def test_an_unwritable_row_index_is_a_warning_not_a_failure(sim, tmp_path, computed):
+    from lidar_iris_eval.extract import cache_key
+
+    seq = open_sequence(sim, frames="0:20")
+    cache = DescriptorCache(tmp_path / "cache")
+    key = cache_key(seq, FrameToy())
+    folder = cache.rows_dir(key, key.family(frozenset({"points"})))
+    folder.parent.mkdir(parents=True)
+    folder.write_text("not a folder")  # the index cannot be written there
+    with pytest.warns(LirisWarning, match="cannot write the cache row index"):
+        db = extract(seq, FrameToy(), cache=cache)
+    assert db.cache_path.is_file() and folder.read_text() == "not a folder"
+    computed.clear()
+    with pytest.warns(LirisWarning, match="cannot write the cache row index"):
+        again = extract(open_sequence(sim, frames="5:15"), FrameToy(), cache=cache)
+    assert computed == {"toy": 10} and again.reused_rows == 0  # no index: computed, correct
+    assert _bitwise_equal(again.descriptors, db.descriptors[5:15])
