@@ -247,3 +247,16 @@ def test_an_unwritable_row_index_is_a_warning_not_a_failure(sim, tmp_path, compu
         again = extract(open_sequence(sim, frames="5:15"), FrameToy(), cache=cache)
     assert computed == {"toy": 10} and again.reused_rows == 0  # no index: computed, correct
     assert _bitwise_equal(again.descriptors, db.descriptors[5:15])
+
+
+def test_liris_extract_reports_the_reused_rows(sim, tmp_path, capsys):
+    base = ["extract", sim, "-d", "m2dp", "--cache-dir", tmp_path / "c", "--workers", "1",
+            "-q", "--json"]
+    code, out, err = run_cli(base, capsys)
+    assert code == 0, err
+    (row,) = json.loads(out)["results"]
+    assert row["scans"] == 60 and row["reused_rows"] == 0 and not row["from_cache"]
+    code, out, err = run_cli([*base, "--frames", "20:45"], capsys)
+    assert code == 0, err
+    (row,) = json.loads(out)["results"]
+    assert row["scans"] == 25 and row["reused_rows"] == 25 and row["from_cache"]
