@@ -65,7 +65,7 @@ def test_only_scan_by_scan_global_methods_share_rows():
     for name in ("lidar-iris", "scan-context", "m2dp", "esf"):
         assert shares_rows(get_descriptor(name)), name
     assert not shares_rows(get_descriptor("esm"))  # local maps
-    assert not shares_rows(get_descriptor("esm", "single-scan"))  # keeps segment state
+    assert not shares_rows(get_descriptor("esm", "single-scan"))  # not declared per-frame
     assert not MapClosures.per_frame
     assert not shares_rows(ToyHist())  # a method that does not say so never shares
 
