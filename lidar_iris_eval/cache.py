@@ -24,6 +24,22 @@ would make them private), so a group-shared cache stays shared.
 Long extractions also store *chunks* (``<stem>.partial/chunk-<a>-<b>.npz``,
 same format) as they go, so an interrupted run resumes where it stopped.
 
+A method whose output for a scan depends on that scan alone
+(``Descriptor.per_frame``) also gets a *row index* beside each complete file:
+``<descriptor>-<family>.rows/<digest>.npz`` (same format) holds one content
+identity per scan (:func:`scan_identities`: the scan file's name, size, mtime
+and sampled bytes, plus its label file when the method reads labels). The
+*family* (:meth:`CacheKey.family`) is the key without the sequence's
+fingerprint and length, so two frame selections of one sequence (``--frames
+0:400`` and ``--frames 100:200``) share it. A selection that misses the cache
+takes the rows of its scans from a file of its family whose index holds the
+same identities (:meth:`DescriptorCache.find_rows`), instead of computing
+them again: the rows are those a fresh extraction gives, since each depends on
+its scan alone and the scan's identity is the same. A scan whose file changed
+has another identity, so its row is computed again. Methods whose rows depend
+on other frames (local maps: ESM's local-map mode, MapClosures) get no index
+and never share rows across selections.
+
 Default location: ``$LIRIS_CACHE_DIR`` if set, else ``./.liris-cache`` in the
 current directory (git-ignored in this repository).
 """
@@ -37,6 +53,7 @@ import os
 import shutil
 import tempfile
 import zipfile
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -47,6 +64,7 @@ from lidar_iris_eval.errors import LirisError, check_writable_dir, os_error, war
 from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 
 CACHE_FORMAT = 2  # 2: extract_s is per-thread CPU time, compilation excluded
+ROWS_FORMAT = 1  # the row index of per-frame methods (see the module docstring)
 ENV_VAR = "LIRIS_CACHE_DIR"
 DEFAULT_DIRNAME = ".liris-cache"
 _META = "__meta__"
@@ -106,6 +124,22 @@ class CacheKey:
     def stem(self) -> str:
         safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in self.sequence) or "seq"
         return f"{safe}-{self.descriptor}-{self.digest()}"
+
+    def family(self, reads: Iterable[str]) -> str:
+        """The key without the scans: what two frame selections of a sequence share.
+
+        Everything of :meth:`digest` but the sequence fingerprint, the scan count
+        and the whole-sequence input fingerprint, plus the names of the inputs
+        read (``reads``): the per-scan identities (:func:`scan_identities`) stand
+        for the scans instead, so a row is shared only between keys that agree
+        on the method, its parameters, the versions and the code.
+        """
+        fields = asdict(self)
+        for name in ("fingerprint", "n_scans", "inputs"):
+            del fields[name]
+        text = json.dumps({"format": CACHE_FORMAT, "rows": ROWS_FORMAT,
+                           "reads": sorted(reads), **fields}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
 def arrays_checksum(arrays: dict[str, np.ndarray]) -> str:
@@ -189,6 +223,49 @@ def input_fingerprint(seq: Any, inputs: frozenset[str] | set[str]) -> str:
         hash_file_samples(digest, list(label_paths))
         parts.append(f"labels:{digest.hexdigest()[:16]}")
     return ";".join(parts)
+
+
+#: the inputs a per-scan identity covers: the scan file (points, intensity) and its labels
+_IDENTIFIED_INPUTS = frozenset({"points", "intensity", "labels"})
+#: bytes of one scan identity (a truncated SHA-256)
+IDENTITY_BYTES = 16
+
+
+def scan_identities(seq: Any, inputs: frozenset[str] | set[str]) -> np.ndarray | None:
+    """``(N, 16)`` uint8: one content identity per scan of ``seq``, or None.
+
+    Each row hashes, as :meth:`Sequence.fingerprint` does for the whole
+    sequence, the scan file's name, size, mtime and first and last 4 KiB
+    (every byte inside ``full_scan_hashing``), plus the scan's label file when
+    ``inputs`` holds ``"labels"``. The sequence fingerprint is a function of
+    these files in order, so for a method whose rows depend on their own scan
+    alone, equal identities mean equal rows.
+
+    None when an identity would not cover what the rows depend on: a sequence
+    type that reads or fingerprints its scans its own way (ROS bags, dataset
+    readers, object sequences), or inputs beyond the scan and label files.
+    """
+    from lidar_iris_eval.io.sequence import Sequence, hash_file_samples
+
+    if not isinstance(seq, Sequence) or not set(inputs) <= _IDENTIFIED_INPUTS:
+        return None
+    if any(getattr(type(seq), name) is not getattr(Sequence, name)
+           for name in ("fingerprint", "scan", "read", "__getitem__")):
+        return None
+    labels = seq.label_paths if "labels" in inputs else None
+    out = np.empty((len(seq), IDENTITY_BYTES), dtype=np.uint8)
+    for i, path in enumerate(seq.scan_paths):
+        digest = hashlib.sha256(b"scan;")
+        hash_file_samples(digest, [path])
+        if labels is not None:
+            digest.update(b"labels;")
+            hash_file_samples(digest, [labels[i]])
+        out[i] = np.frombuffer(digest.digest()[:IDENTITY_BYTES], dtype=np.uint8)
+    return out
+
+
+def _identity_keys(ids: np.ndarray) -> list[bytes]:
+    return [bytes(row) for row in np.ascontiguousarray(ids, dtype=np.uint8)]
 
 
 class DescriptorCache:
@@ -275,6 +352,79 @@ class DescriptorCache:
             if all(len(v) == stop - start for v in per_scan):
                 chunks[(start, stop)] = arrays
         return chunks
+
+    def rows_dir(self, key: CacheKey, family: str) -> Path:
+        """The folder of ``family``'s row indexes (see the module docstring)."""
+        safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in key.descriptor)
+        return self.root / f"{safe}-{family}.rows"
+
+    def has_rows(self, key: CacheKey, family: str) -> bool:
+        """True when ``key``'s complete file already has its row index."""
+        return (self.rows_dir(key, family) / f"{key.digest()}.npz").is_file()
+
+    def store_rows(self, key: CacheKey, family: str, ids: np.ndarray) -> None:
+        """Record the scan identities of ``key``'s complete file (one row each, in order).
+
+        The index only saves work later, so failing to write it (a full disk, a
+        folder of another user's) is a warning, never the end of a run whose
+        descriptors are already stored. Temporary files of killed writers in the
+        index folder are removed first, as :meth:`check_writable` does in the root.
+        """
+        if not self.writable(key):
+            return
+        folder = self.rows_dir(key, family)
+        path = folder / f"{key.digest()}.npz"
+        remove_stale_temps(folder)
+        try:
+            write_arrays(path, {"scan_ids": np.ascontiguousarray(ids, dtype=np.uint8)},
+                         {"key": asdict(key), "digest": key.digest(), "family": family})
+        except (LirisError, OSError) as err:
+            warn(folder, f"cannot write the cache row index ({getattr(err, 'problem', err)}); "
+                         "other frame selections will compute these scans again")
+
+    def find_rows(self, key: CacheKey, family: str,
+                  ids: np.ndarray) -> list[tuple[CacheKey, np.ndarray]]:
+        """Other files of ``family`` holding rows of the scans ``ids``, best first.
+
+        Returns ``(key, rows)`` pairs: ``rows[i]`` is the row of scan ``i`` in
+        that key's file, -1 where it holds no scan of that identity; ordered by
+        how many scans they cover. Each index is verified like a cache file
+        (checksum, key and family); a bad one is warned about and deleted. The
+        files themselves are verified again when loaded.
+        """
+        folder = self.rows_dir(key, family)
+        if not folder.is_dir():
+            return []
+        wanted = _identity_keys(ids)
+        found: list[tuple[int, CacheKey, np.ndarray]] = []
+        for path in sorted(folder.glob("*.npz")):
+            if path.stem == key.digest():
+                continue
+            try:
+                arrays, meta = read_arrays(path)
+                other = CacheKey(**meta["key"])
+                if (meta.get("family") != family or meta.get("digest") != path.stem
+                        or other.digest() != path.stem):
+                    raise ValueError("written for a different key")
+                stored = arrays["scan_ids"]
+                if stored.ndim != 2 or stored.shape != (other.n_scans, IDENTITY_BYTES):
+                    raise ValueError("not one identity per scan")
+            except PermissionError:
+                continue  # another user's index: not ours to delete, and unusable
+            except (ValueError, KeyError, TypeError) as err:
+                warn(path, f"corrupt cache row index ({err}); deleting it")
+                path.unlink(missing_ok=True)
+                continue
+            if not self.path(other).is_file():
+                path.unlink(missing_ok=True)  # its file was removed: the index is stale
+                continue
+            where = {k: r for r, k in enumerate(_identity_keys(stored))}
+            rows = np.array([where.get(k, -1) for k in wanted], dtype=np.int64)
+            covered = int(np.count_nonzero(rows >= 0))
+            if covered:
+                found.append((covered, other, rows))
+        found.sort(key=lambda item: -item[0])
+        return [(other, rows) for _, other, rows in found]
 
     def _load_verified(self, path: Path, key: CacheKey,
                        expect: dict[str, Any] | None = None) -> dict[str, np.ndarray] | None:

@@ -12,6 +12,14 @@ finished chunk is stored at once, so a killed run resumes from its last chunk,
 and the complete array is stored as one verified file at the end. A second call
 with the same inputs loads that file and computes nothing.
 
+For a method whose rows depend on their own scan alone (``Descriptor.per_frame``:
+LiDAR Iris, Scan Context, M2DP, ESF), a frame selection that misses the cache
+takes the rows of the scans it shares with a cached run of another selection
+(``--frames 0:100`` after a run on all frames) from that run's file, chunk by
+chunk, instead of computing them (cache.py, row index); the rows are bitwise
+those a fresh extraction gives. Local-map methods never do: their rows depend
+on the frames kept.
+
 ``workers > 1`` spreads chunks over a local process pool. ``extract_s`` is the
 CPU time of the calling thread (:func:`time.thread_time`) spent in
 ``descriptor.compute``: processes competing for cores (``--workers 8`` on two
@@ -45,9 +53,9 @@ import numpy as np
 from tqdm import tqdm
 
 from lidar_iris_eval import __version__
-from lidar_iris_eval.cache import CacheKey, DescriptorCache, input_fingerprint
+from lidar_iris_eval.cache import CacheKey, DescriptorCache, input_fingerprint, scan_identities
 from lidar_iris_eval.config import params_dict
-from lidar_iris_eval.descriptors.base import Descriptor, reads_local_maps
+from lidar_iris_eval.descriptors.base import Descriptor, reads_local_maps, shares_rows
 from lidar_iris_eval.descriptors.features import RaggedFeatures
 from lidar_iris_eval.errors import LirisError, option
 from lidar_iris_eval.io.scans import Scan
@@ -70,7 +78,10 @@ class DescriptorDB:
         reading the scan file (from the run that computed them).
     sequence, fingerprint : the sequence name and content fingerprint.
     cache_path : the cache file, or None when no cache was used.
-    from_cache : True when nothing was computed in this call.
+    from_cache : True when nothing was computed in this call (loaded from its own
+        file, or every row taken from the file of another frame selection).
+    reused_rows : scans whose rows were taken from another frame selection's
+        cached file (see the module docstring) rather than computed; 0 otherwise.
     warnings : the warnings that qualify results computed from these descriptors
         (degenerate descriptors, :mod:`lidar_iris_eval.descriptors.sanity`); the
         run stores them with each result row.
@@ -87,6 +98,7 @@ class DescriptorDB:
     cache_path: Path | None
     from_cache: bool
     warnings: tuple[str, ...] = ()
+    reused_rows: int = 0
 
     def __len__(self) -> int:
         return len(self.descriptors)
@@ -228,6 +240,7 @@ class _Plan:
     joined: _Joiner | None = None
     ready: DescriptorDB | None = None
     todo: tuple[tuple[int, int], ...] = ()
+    reused: int = 0  # scans taken from another selection's file (_reuse_rows)
 
 
 def extract_many(
@@ -265,6 +278,12 @@ def extract_many(
     fingerprint = seq.fingerprint()
     ranges = chunk_ranges(len(seq), chunk_size)
     plans = [_plan(seq, d, cache, fingerprint, ranges) for d in descriptors]
+    identities = _Identities(seq)
+    for plan in plans if cache is not None else ():
+        if plan.ready is None and plan.todo and plan.meta["cache_path"] is not None:
+            _reuse_rows(plan, cache, identities)
+        elif plan.ready is not None:
+            _index_rows(plan, cache, identities)  # a file of an earlier release: index it
     pending = [p for p in plans if p.ready is None]
     # ranges -> the descriptors that still need them (usually every range, all of them)
     # (a local-map method reads the scans of its window itself: a group of its own)
@@ -301,11 +320,71 @@ def extract_many(
                     plan.joined.add(a, b, arrays)
     for plan in pending:
         arrays = plan.joined.arrays()
-        if cache is not None:
-            cache.store(plan.key, arrays)
+        if cache is not None and cache.store(plan.key, arrays) is not None:
+            _index_rows(plan, cache, identities)
         found = _warn_if_degenerate(arrays, plan.descriptor, seq)
-        plan.ready = DescriptorDB(**plan.meta, **_split(arrays), from_cache=False, warnings=found)
+        reused_all = plan.reused > 0 and not plan.todo
+        plan.ready = DescriptorDB(**plan.meta, **_split(arrays), from_cache=reused_all,
+                                  warnings=found, reused_rows=plan.reused)
     return [p.ready for p in plans]
+
+
+class _Identities:
+    """The scans' content identities (cache.scan_identities), computed once per input set."""
+
+    def __init__(self, seq):
+        self.seq = seq
+        self.memo: dict[frozenset[str], np.ndarray | None] = {}
+
+    def __call__(self, reads: frozenset[str]) -> np.ndarray | None:
+        if reads not in self.memo:
+            self.memo[reads] = scan_identities(self.seq, reads)
+        return self.memo[reads]
+
+
+def _index_rows(plan: _Plan, cache: DescriptorCache, identities: _Identities) -> None:
+    """Give ``plan``'s complete file its row index, when its method shares rows."""
+    if not shares_rows(plan.descriptor):
+        return
+    reads = _read_inputs(plan.descriptor)
+    family = plan.key.family(reads)
+    if cache.has_rows(plan.key, family):
+        return
+    ids = identities(reads)
+    if ids is not None:
+        cache.store_rows(plan.key, family, ids)
+
+
+def _reuse_rows(plan: _Plan, cache: DescriptorCache, identities: _Identities) -> None:
+    """Fill ``plan``'s chunks from cached files of other frame selections, where they hold
+    every scan of a chunk (same identity), and drop those chunks from ``plan.todo``.
+
+    Only for methods that share rows (:func:`shares_rows`) and dense descriptors. Each
+    file is loaded verified (checksum, key); the rows taken are the stored ones, so
+    they are bitwise those a fresh extraction of the same scans gives.
+    """
+    if not shares_rows(plan.descriptor):
+        return
+    reads = _read_inputs(plan.descriptor)
+    ids = identities(reads)
+    if ids is None:
+        return
+    for other, rows in cache.find_rows(plan.key, plan.key.family(reads), ids):
+        covered = [(a, b) for a, b in plan.todo if bool(np.all(rows[a:b] >= 0))]
+        if not covered:
+            continue
+        stored = cache.load(other)
+        if (stored is None or not _complete(stored, other.n_scans)
+                or RaggedFeatures.in_arrays(stored)):
+            continue
+        for a, b in covered:
+            take = rows[a:b]
+            plan.joined.add(a, b, {name: stored[name][take]
+                                   for name in ("descriptors", "extract_s", "read_s")})
+            plan.reused += b - a
+        plan.todo = tuple(r for r in plan.todo if r not in plan.joined)
+        if not plan.todo:
+            break
 
 
 def _plan(seq, descriptor: Descriptor, cache, fingerprint: str, ranges) -> _Plan:

@@ -57,6 +57,7 @@ def command(sequence, descriptor_text, preset, params, sensor, cache_dir, worker
             "preset": db.preset,
             "scans": len(db),
             "from_cache": db.from_cache,
+            "reused_rows": db.reused_rows,  # from another frame selection's cached run
             "extract_ms_per_scan": db.extract_ms_per_scan,
             "cache_file": str(db.cache_path),
         }

@@ -64,6 +64,15 @@ KNOWN_INPUTS = frozenset({"points", "intensity", "labels", "objects", "local_map
 BUILT_INPUTS = frozenset({"local_map"})
 
 
+def shares_rows(descriptor: Any) -> bool:
+    """True for a method whose cached rows may serve another frame selection.
+
+    Its class says ``per_frame`` and it reads no local map (a local map mixes the
+    scans of earlier frames, so a frame's row depends on which frames were kept).
+    """
+    return bool(getattr(descriptor, "per_frame", False)) and not reads_local_maps(descriptor)
+
+
 def reads_local_maps(descriptor: Any) -> bool:
     """True for a method that declares the ``local_map`` input.
 
@@ -144,6 +153,12 @@ class Descriptor(abc.ABC):
     takes_scan: ClassVar[bool] = False
     #: True for retrieval + verification methods without an all-pairs distance
     two_stage: ClassVar[bool] = False
+    #: True when ``compute``'s output for a scan depends on that scan alone (no state kept
+    #: across scans, no local map, a random generator restarted per scan): extraction
+    #: may then take a scan's row from the cached run of another frame selection that
+    #: holds the same scan (cache.py, row index). False by default, since a wrong True
+    #: would serve numbers a fresh run does not give; ESM and MapClosures keep it False.
+    per_frame: ClassVar[bool] = False
     #: how figures and tables name the method (default: the registry name)
     label: ClassVar[str | None] = None
     #: its colour in every figure (default: a stable spare colour picked from its name)

@@ -372,6 +372,7 @@ class ESF(Descriptor):
     label = "ESF"
     color = "#CC79A7"
     params_type = ESFParams
+    per_frame = True  # the triplets' generator restarts from the seed for every scan
     symmetric = True  # |a - b| == |b - a| exactly
 
     def __init__(self, params: ESFParams | None = None, preset: str = "custom"):

@@ -590,6 +590,7 @@ class LidarIris(Descriptor):
     label: ClassVar[str] = "LiDAR Iris"
     color: ClassVar[str] = "#D55E00"
     params_type: ClassVar[type] = LidarIrisParams
+    per_frame: ClassVar[bool] = True  # each scan's descriptor is computed from that scan alone
     symmetric: ClassVar[bool] = True
 
     def check_inputs(self, sequence) -> None:

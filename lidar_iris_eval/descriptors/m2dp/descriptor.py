@@ -346,6 +346,7 @@ class M2DP(Descriptor):
     label = "M2DP"
     color = "#009E73"
     params_type = M2DPParams
+    per_frame = True  # each scan's descriptor is computed from that scan alone
     symmetric = True  # (a-b)**2 == (b-a)**2 exactly in IEEE arithmetic
 
     def __init__(self, params: M2DPParams | None = None, preset: str = "custom"):

@@ -299,6 +299,7 @@ class ScanContext(Descriptor):
     label = "Scan Context"
     color = "#0072B2"
     params_type = ScanContextParams
+    per_frame = True  # each scan's descriptor is computed from that scan alone
     symmetric = False
 
     def __init__(self, params: ScanContextParams | None = None, preset: str = "custom"):
