@@ -53,6 +53,28 @@ class SerialExecutor:
         for index, task in enumerate(tasks):
             yield index, fn(*shared, *task)
 
+    def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                   warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
+        """The tasks of a block pass, as :meth:`imap` yields them: here, in order.
+
+        Blocks share one large descriptor array, which a local pool would copy
+        into every worker, so every local executor runs them in this process.
+        ``warm_up`` is called at once (not when the first block is asked for),
+        so a caller that starts its clock after this call does not count the
+        kernels' compilation as matching cost.
+        """
+        if warm_up is not None:
+            warm_up()
+        return SerialExecutor.imap(self, fn, tasks, shared)
+
+    def returns_blocks(self) -> bool:
+        """Whether a block task may return a whole block of distances.
+
+        True here: the blocks are computed in this process, so keeping them
+        (an affinity matrix) ships nothing. A cluster's tasks return
+        reductions only.
+        """
+        return True
 
     def describe(self) -> dict[str, Any]:
         return {"scheduler": self.scheduler, "workers": self.workers}
@@ -166,6 +188,18 @@ class DaskExecutor:
             for future in futures:
                 future.cancel()
 
+    def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                   warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
+        """The tasks of a block pass as cluster tasks (:meth:`imap`), in any order.
+
+        ``warm_up`` is not called: nothing is matched in this process, and
+        each worker compiles its kernels on its first block.
+        """
+        return self.imap(fn, tasks, shared)
+
+    def returns_blocks(self) -> bool:
+        """False: a block task returns reductions only, never a block of distances."""
+        return False
 
     def describe(self) -> dict[str, Any]:
         """For config files: which scheduler, how many workers."""

@@ -22,15 +22,14 @@ from lidar_iris_eval.matching.blocks import best_matches
 
 @dataclass(frozen=True)
 class ReversedExecutor(SerialExecutor):
-    """Distributes blocks; yields the last task first."""
+    """Runs block tasks as a cluster would: no warm-up, reductions only, last task first."""
 
-    serial: bool = False
-    distributes_blocks: bool = True
-
-    def imap(self, fn, tasks, shared=()):
+    def run_blocks(self, fn, tasks, shared=(), warm_up=None):
         self.calls.append(len(tasks))
-        for index in reversed(range(len(tasks))):
-            yield index, fn(*shared, *tasks[index])
+        return ((index, fn(*shared, *tasks[index])) for index in reversed(range(len(tasks))))
+
+    def returns_blocks(self):
+        return False
 
     @property
     def calls(self):

@@ -24,6 +24,7 @@ treated as "no match": they never win a best-match search.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -32,6 +33,7 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.executor import SerialExecutor
 
 #: default number of distances computed per block (256 queries x 4096 frames)
 DEFAULT_PAIR_BUDGET = 1 << 20
@@ -348,10 +350,27 @@ class CallSink(Reducer):
 
 
 def _block_task(descriptor, queries, database, reducers, rows, width):
-    """One block: its distances once, then every reducer's part (also a Dask task)."""
+    """One block: its distances once, then every reducer's part (also a Dask task).
+
+    Returns ``(distances computed, parts, seconds of the untimed reducers' parts,
+    process id)``: the pass subtracts those seconds from its wall clock only
+    when the block ran in its own process (elsewhere they overlapped it).
+    """
     database = queries if database is None else database
     d, y = _pairwise(descriptor, _rows(queries, rows), database[:width])
-    return d.size, [r.part(rows, d, y) for r in reducers]
+    parts, untimed = [], 0.0
+    for reducer in reducers:
+        if reducer.timed:
+            parts.append(reducer.part(rows, d, y))
+        else:
+            began = time.perf_counter()
+            parts.append(reducer.part(rows, d, y))
+            untimed += time.perf_counter() - began
+    return d.size, parts, untimed, os.getpid()
+
+
+#: the executor of a pass given none: everything in this process
+_HERE = SerialExecutor()
 
 
 def block_pass(descriptor: Descriptor, descriptors, blocks, reducers, executor=None,
@@ -362,37 +381,35 @@ def block_pass(descriptor: Descriptor, descriptors, blocks, reducers, executor=N
     ``blocks`` are ``(rows, width)``: query indices (a contiguous run is read
     as a slice) against database frames ``[0, width)``. ``database`` is the
     descriptors queries are matched against (another session's); default the
-    queries' own. ``executor`` (:mod:`lidar_iris_eval.executor`), when it
-    distributes blocks (Dask), runs each block as a task returning the
-    reducers' parts only; merges are exact, so the results do not change.
-    Returns ``(evaluations, seconds)``: distances computed and matching wall
-    time (without the untimed reducers' time).
+    queries' own. ``executor`` (:mod:`lidar_iris_eval.executor`; default this
+    process) decides where the blocks run (``run_blocks``): a local one in this
+    process, after warming the kernels up; Dask as tasks returning the reducers'
+    parts only. Merges are exact and in block order here, so the results do not
+    depend on the executor. Returns ``(evaluations, seconds)``: distances computed
+    and matching wall time (without the untimed reducers' time spent in this
+    process).
     """
     reducers = list(reducers)
+    runner = _HERE if executor is None else executor
+    shared = (descriptor, descriptors, database, tuple(reducers))
+    results = runner.run_blocks(_block_task, blocks, shared,
+                                warm_up=lambda: warm_up(descriptor, descriptors))
+    here = os.getpid()
     evaluations, untimed = 0, 0.0
     start = time.perf_counter()
-    if executor is not None and executor.distributes_blocks:
-        shared = (descriptor, descriptors, database, tuple(reducers))
-        for index, (size, parts) in executor.imap(_block_task, blocks, shared=shared):
-            for reducer, part in zip(reducers, parts, strict=True):
-                reducer.merge(part)
-            evaluations += int(size)
-            if progress is not None:
-                progress(len(blocks[index][0]))
-        return evaluations, time.perf_counter() - start
-    target = descriptors if database is None else database
-    for rows, width in blocks:
-        d, y = _pairwise(descriptor, _rows(descriptors, rows), target[:width])
-        evaluations += d.size
-        for reducer in reducers:
+    for index, (size, parts, parts_s, pid) in results:
+        if pid == here:
+            untimed += parts_s
+        for reducer, part in zip(reducers, parts, strict=True):
             if reducer.timed:
-                reducer.merge(reducer.part(rows, d, y))
+                reducer.merge(part)
             else:
                 began = time.perf_counter()
-                reducer.merge(reducer.part(rows, d, y))
+                reducer.merge(part)
                 untimed += time.perf_counter() - began
+        evaluations += int(size)
         if progress is not None:
-            progress(len(rows))
+            progress(len(blocks[index][0]))
     return evaluations, time.perf_counter() - start - untimed
 
 
