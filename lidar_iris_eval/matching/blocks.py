@@ -103,8 +103,9 @@ def warm_up(descriptor: Descriptor, descriptors) -> None:
 
     The first call of a numba kernel compiles it (or loads it from numba's
     cache); timing that would report compilation as matching cost (13x on a
-    fresh install for LiDAR Iris protocol 2). Every timed loop calls this
-    just before starting its clock.
+    fresh install for LiDAR Iris protocol 2). :func:`block_pass` has its
+    executor call this just before starting its clock (a cluster's workers
+    compile on their own).
     """
     if len(descriptors) < 2:
         return
@@ -433,15 +434,14 @@ def best_matches(
     limits (:func:`query_limits`). A block of queries is compared with the
     database its last query may see; the few pairs beyond each query's own
     limit are masked out. ``executor`` (:mod:`lidar_iris_eval.executor`), when
-    given, runs the blocks (e.g. as Dask tasks); the results do not change.
+    given, decides where the blocks run (see :func:`block_pass`; e.g. as Dask
+    tasks); the results do not change.
 
     ``exclude`` may also be ``(K, N)`` limits (``--convention-band``): one pass
     over the union of their queries and databases, and a list of ``K``
     :class:`BestMatches`, each equal to a search under its own limits.
     """
     best = BestInRow(len(descriptors), exclude)
-    if executor is None or not executor.distributes_blocks:
-        warm_up(descriptor, descriptors)  # compilation is not matching cost
     evaluations, seconds = block_pass(descriptor, descriptors, best.blocks(pair_budget), [best],
                                       executor, progress)
     return best.result(seconds, evaluations, "exhaustive")
@@ -477,7 +477,6 @@ def affinity_matrix(
     best = BestInRow(n, exclude) if exclude is not None else None
     reducers = [r for r in (matrix, CallSink(sink) if sink is not None else None, best)
                 if r is not None]
-    warm_up(descriptor, descriptors)  # compilation is not matching cost
     evaluations, seconds = block_pass(descriptor, descriptors,
                                       row_blocks(n, pair_budget, symmetric), reducers,
                                       progress=progress)
