@@ -53,6 +53,19 @@ class SerialExecutor:
         for index, task in enumerate(tasks):
             yield index, fn(*shared, *task)
 
+    def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                      tick: Callable[[int], object] | None = None,
+                      sizes: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
+        """:meth:`imap` that reports progress through ``tick(units done)``.
+
+        Here ``fn`` gets ``tick`` itself (keyword ``tick``), so a bar moves
+        unit by unit within a task (scan by scan in extraction) rather than
+        chunk by chunk; a pool or cluster, whose tasks cannot call back into
+        this process, calls ``tick(sizes[index])`` as each task finishes.
+        """
+        for index, task in enumerate(tasks):
+            yield index, fn(*shared, *task, tick=tick)
+
     def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
                    warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
         """The tasks of a block pass, as :meth:`imap` yields them: here, in order.
@@ -136,6 +149,24 @@ class ProcessExecutor(SerialExecutor):
             else:  # an error, Ctrl-C or the consumer stopped: do not wait for running tasks
                 stop_pool(pool)
 
+    def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                      tick: Callable[[int], object] | None = None,
+                      sizes: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
+        """:meth:`SerialExecutor.imap_progress`: in the pool, ticks as tasks finish;
+        in this process (one worker or one task, as :meth:`imap`), unit by unit."""
+        if self.workers <= 1 or len(tasks) <= 1:
+            return SerialExecutor.imap_progress(self, fn, tasks, shared, tick, sizes)
+        return _tick_when_done(self.imap(fn, tasks, shared), tick, sizes)
+
+
+def _tick_when_done(results: Iterator[tuple[int, Any]], tick: Callable[[int], object] | None,
+                    sizes: Sequence[int]) -> Iterator[tuple[int, Any]]:
+    """``results`` of tasks run elsewhere, with ``tick(sizes[index])`` as each arrives."""
+    for index, result in results:
+        if tick is not None:
+            tick(sizes[index])
+        yield index, result
+
 
 #: per-process state of pool workers: the task function and the shared arguments
 _POOL: dict[str, Any] = {}
@@ -187,6 +218,12 @@ class DaskExecutor:
         finally:
             for future in futures:
                 future.cancel()
+
+    def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                      tick: Callable[[int], object] | None = None,
+                      sizes: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
+        """:meth:`imap` with ``tick(sizes[index])`` as each task finishes."""
+        return _tick_when_done(self.imap(fn, tasks, shared), tick, sizes)
 
     def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
                    warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
