@@ -66,6 +66,15 @@ class SerialExecutor:
         for index, task in enumerate(tasks):
             yield index, fn(*shared, *task, tick=tick)
 
+    def concurrency(self) -> int:
+        """How many tasks of :meth:`imap` run at once: 1 here.
+
+        At 1 nothing is gained by shipping work out, so a caller may run it in
+        this process itself and share its own state with it (registration
+        shares one scan cache); above 1 the tasks run in other processes.
+        """
+        return 1
+
     def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
                    warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
         """The tasks of a block pass, as :meth:`imap` yields them: here, in order.
@@ -91,6 +100,15 @@ class SerialExecutor:
 
     def describe(self) -> dict[str, Any]:
         return {"scheduler": self.scheduler, "workers": self.workers}
+
+    def run_config(self) -> dict[str, Any]:
+        """The ``engine`` block of a run's ``config.yaml``: the scheduler only.
+
+        A local run's numbers do not depend on how many processes computed
+        them, so its ``config.yaml`` does not change with ``--workers``; a
+        cluster's block names its workers too (:meth:`DaskExecutor.run_config`).
+        """
+        return {"scheduler": self.scheduler}
 
 
 def stop_pool(pool) -> None:
@@ -148,6 +166,10 @@ class ProcessExecutor(SerialExecutor):
                 pool.shutdown(wait=True)
             else:  # an error, Ctrl-C or the consumer stopped: do not wait for running tasks
                 stop_pool(pool)
+
+    def concurrency(self) -> int:
+        """``workers``: the pool's processes (1 or less: :meth:`imap` runs here)."""
+        return max(1, self.workers)
 
     def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
                       tick: Callable[[int], object] | None = None,
@@ -219,6 +241,10 @@ class DaskExecutor:
             for future in futures:
                 future.cancel()
 
+    def concurrency(self) -> int:
+        """The cluster's worker count when the executor started."""
+        return max(1, self.workers)
+
     def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
                       tick: Callable[[int], object] | None = None,
                       sizes: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
@@ -241,6 +267,10 @@ class DaskExecutor:
     def describe(self) -> dict[str, Any]:
         """For config files: which scheduler, how many workers."""
         return {"scheduler": self.scheduler, "workers": self.workers}
+
+    def run_config(self) -> dict[str, Any]:
+        """The ``engine`` block of ``config.yaml``: the scheduler and its workers."""
+        return self.describe()
 
 
 Executor = SerialExecutor | ProcessExecutor | DaskExecutor
