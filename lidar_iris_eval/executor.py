@@ -18,8 +18,21 @@ CLI reads global execution state.
 
 Every executor has ``imap(fn, tasks, shared=())``, which yields
 ``(index, fn(*shared, *tasks[index]))`` as tasks finish (any order), and
-``describe()`` for ``config.yaml``. Dask is an optional extra:
-``pip install "lidar-iris-eval[dask]"``.
+answers what its callers would otherwise decide by asking which kind it is:
+
+* ``imap_progress(fn, tasks, shared, tick, sizes)``: ``imap`` that moves a
+  progress bar unit by unit in this process, task by task elsewhere;
+* ``run_blocks(fn, blocks, shared, warm_up)``: where a block pass runs (here
+  after ``warm_up``, or as cluster tasks) and ``returns_blocks()``, whether a
+  block task may return a whole block of distances;
+* ``concurrency()``: how many tasks run at once (1: a caller may do the work
+  itself and share its state, e.g. a scan cache);
+* ``describe()`` and ``run_config()`` (``config.yaml``'s ``engine`` block).
+
+A :class:`~lidar_iris_eval.errors.LirisError` raised in a task reaches the
+caller as itself, from the pool and from Dask (it pickles with both parts),
+so the CLI reports it as one line with exit code 2. Dask is an optional
+extra: ``pip install "lidar-iris-eval[dask]"``.
 """
 
 from __future__ import annotations
@@ -45,8 +58,6 @@ class SerialExecutor:
 
     workers: int = 1
     scheduler: str = "processes"
-    serial: bool = True
-    distributes_blocks: bool = False
 
     def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
              ) -> Iterator[tuple[int, Any]]:
@@ -131,8 +142,8 @@ def stop_pool(pool) -> None:
 @dataclass(frozen=True)
 class ProcessExecutor(SerialExecutor):
     """A local process pool of ``workers``: ``imap`` runs its tasks there (extraction
-    chunks, registrations). Block passes stay in this process (``distributes_blocks`` is
-    False: they share one large descriptor array).
+    chunks, registrations). Block passes stay in this process (:meth:`run_blocks`:
+    they share one large descriptor array).
 
     ``shared`` is handed to each worker once (the pool's initializer), so a task
     ships only its own small arguments; a worker exits with the process that
@@ -143,7 +154,6 @@ class ProcessExecutor(SerialExecutor):
     """
 
     workers: int = 2
-    serial: bool = False
 
     def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
              ) -> Iterator[tuple[int, Any]]:
@@ -219,8 +229,6 @@ class DaskExecutor:
     client: Any
     scheduler: str
     workers: int
-    serial: bool = False
-    distributes_blocks: bool = True
 
     def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
              ) -> Iterator[tuple[int, Any]]:

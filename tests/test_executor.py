@@ -79,9 +79,10 @@ def test_distributed_stream_equals_serial(data):
 
 
 def test_executors_from_the_options():
-    assert local_executor(1).serial and local_executor(3).workers == 3
+    assert local_executor(1).concurrency() == 1 and local_executor(3).concurrency() == 3
     with open_executor("processes", 2) as ex:
-        assert not ex.distributes_blocks and ex.workers == 2
+        assert ex.returns_blocks() and ex.workers == 2
+        assert ex.run_config() == {"scheduler": "processes"}
 
 
 # --- progress: scan by scan in this process, task by task from a pool -----------------------
