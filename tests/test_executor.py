@@ -85,6 +85,36 @@ def test_executors_from_the_options():
         assert ex.run_config() == {"scheduler": "processes"}
 
 
+class _SlowCount:
+    """An untimed reducer whose part takes 50 ms: a bookkeeping cost, not matching cost."""
+
+    timed = False
+
+    def __init__(self):
+        self.rows = 0
+
+    def part(self, rows, d, y):
+        import time
+
+        time.sleep(0.05)
+        return len(rows)
+
+    def merge(self, part):
+        self.rows += part
+
+
+def test_untimed_parts_run_here_are_not_matching_time(data):
+    from lidar_iris_eval.matching.blocks import BestInRow, block_pass
+
+    descs, _, _ = data
+    best, slow = BestInRow(len(descs), 7), _SlowCount()
+    blocks = best.blocks(200)  # 200 pairs a block: several blocks
+    evaluations, seconds = block_pass(ToyHist(), descs, blocks, [best, slow])
+    assert slow.rows == sum(len(rows) for rows, _ in blocks) and len(blocks) >= 4
+    assert evaluations == sum(len(rows) * width for rows, width in blocks)
+    assert 0 <= seconds < 0.05 * len(blocks) / 2  # the sleeps (>= 0.2 s) are not counted
+
+
 # --- progress: scan by scan in this process, task by task from a pool -----------------------
 
 def _count_units(n, tick=None):
@@ -139,8 +169,11 @@ def test_a_liris_error_crosses_dask_as_itself():
     from lidar_iris_eval.errors import LirisError
     from lidar_iris_eval.executor import check_scheduler
 
-    with open_executor("local", 1) as ex, pytest.raises(LirisError) as info:
-        list(ex.imap(check_scheduler, [("bogus",)]))
+    with open_executor("local", 1) as ex:
+        assert not ex.returns_blocks() and ex.concurrency() == 1
+        assert ex.run_config() == {"scheduler": "local", "workers": 1}
+        with pytest.raises(LirisError) as info:
+            list(ex.imap(check_scheduler, [("bogus",)]))
     assert type(info.value) is LirisError
     assert info.value.source == "--scheduler bogus"
     assert info.value.problem.startswith("choose processes, local or")
