@@ -18,8 +18,21 @@ CLI reads global execution state.
 
 Every executor has ``imap(fn, tasks, shared=())``, which yields
 ``(index, fn(*shared, *tasks[index]))`` as tasks finish (any order), and
-``describe()`` for ``config.yaml``. Dask is an optional extra:
-``pip install "lidar-iris-eval[dask]"``.
+answers what its callers would otherwise decide by asking which kind it is:
+
+* ``imap_progress(fn, tasks, shared, tick, sizes)``: ``imap`` that moves a
+  progress bar unit by unit in this process, task by task elsewhere;
+* ``run_blocks(fn, blocks, shared, warm_up)``: where a block pass runs (here
+  after ``warm_up``, or as cluster tasks) and ``returns_blocks()``, whether a
+  block task may return a whole block of distances;
+* ``concurrency()``: how many tasks run at once (1: a caller may do the work
+  itself and share its state, e.g. a scan cache);
+* ``describe()`` and ``run_config()`` (``config.yaml``'s ``engine`` block).
+
+A :class:`~lidar_iris_eval.errors.LirisError` raised in a task reaches the
+caller as itself, from the pool and from Dask (it pickles with both parts),
+so the CLI reports it as one line with exit code 2. Dask is an optional
+extra: ``pip install "lidar-iris-eval[dask]"``.
 """
 
 from __future__ import annotations
@@ -45,17 +58,68 @@ class SerialExecutor:
 
     workers: int = 1
     scheduler: str = "processes"
-    serial: bool = True
-    distributes_blocks: bool = False
 
     def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
              ) -> Iterator[tuple[int, Any]]:
         for index, task in enumerate(tasks):
             yield index, fn(*shared, *task)
 
+    def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                      tick: Callable[[int], object] | None = None,
+                      sizes: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
+        """:meth:`imap` that reports progress through ``tick(units done)``.
+
+        Here ``fn`` gets ``tick`` itself (keyword ``tick``), so a bar moves
+        unit by unit within a task (scan by scan in extraction) rather than
+        chunk by chunk; a pool or cluster, whose tasks cannot call back into
+        this process, calls ``tick(sizes[index])`` as each task finishes.
+        """
+        for index, task in enumerate(tasks):
+            yield index, fn(*shared, *task, tick=tick)
+
+    def concurrency(self) -> int:
+        """How many tasks of :meth:`imap` run at once: 1 here.
+
+        At 1 nothing is gained by shipping work out, so a caller may run it in
+        this process itself and share its own state with it (registration
+        shares one scan cache); above 1 the tasks run in other processes.
+        """
+        return 1
+
+    def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                   warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
+        """The tasks of a block pass, as :meth:`imap` yields them: here, in order.
+
+        Blocks share one large descriptor array, which a local pool would copy
+        into every worker, so every local executor runs them in this process.
+        ``warm_up`` is called at once (not when the first block is asked for),
+        so a caller that starts its clock after this call does not count the
+        kernels' compilation as matching cost.
+        """
+        if warm_up is not None:
+            warm_up()
+        return SerialExecutor.imap(self, fn, tasks, shared)
+
+    def returns_blocks(self) -> bool:
+        """Whether a block task may return a whole block of distances.
+
+        True here: the blocks are computed in this process, so keeping them
+        (an affinity matrix) ships nothing. A cluster's tasks return
+        reductions only.
+        """
+        return True
 
     def describe(self) -> dict[str, Any]:
         return {"scheduler": self.scheduler, "workers": self.workers}
+
+    def run_config(self) -> dict[str, Any]:
+        """The ``engine`` block of a run's ``config.yaml``: the scheduler only.
+
+        A local run's numbers do not depend on how many processes computed
+        them, so its ``config.yaml`` does not change with ``--workers``; a
+        cluster's block names its workers too (:meth:`DaskExecutor.run_config`).
+        """
+        return {"scheduler": self.scheduler}
 
 
 def stop_pool(pool) -> None:
@@ -78,8 +142,8 @@ def stop_pool(pool) -> None:
 @dataclass(frozen=True)
 class ProcessExecutor(SerialExecutor):
     """A local process pool of ``workers``: ``imap`` runs its tasks there (extraction
-    chunks, registrations). Block passes stay in this process (``distributes_blocks`` is
-    False: they share one large descriptor array).
+    chunks, registrations). Block passes stay in this process (:meth:`run_blocks`:
+    they share one large descriptor array).
 
     ``shared`` is handed to each worker once (the pool's initializer), so a task
     ships only its own small arguments; a worker exits with the process that
@@ -90,7 +154,6 @@ class ProcessExecutor(SerialExecutor):
     """
 
     workers: int = 2
-    serial: bool = False
 
     def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
              ) -> Iterator[tuple[int, Any]]:
@@ -113,6 +176,28 @@ class ProcessExecutor(SerialExecutor):
                 pool.shutdown(wait=True)
             else:  # an error, Ctrl-C or the consumer stopped: do not wait for running tasks
                 stop_pool(pool)
+
+    def concurrency(self) -> int:
+        """``workers``: the pool's processes (1 or less: :meth:`imap` runs here)."""
+        return max(1, self.workers)
+
+    def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                      tick: Callable[[int], object] | None = None,
+                      sizes: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
+        """:meth:`SerialExecutor.imap_progress`: in the pool, ticks as tasks finish;
+        in this process (one worker or one task, as :meth:`imap`), unit by unit."""
+        if self.workers <= 1 or len(tasks) <= 1:
+            return SerialExecutor.imap_progress(self, fn, tasks, shared, tick, sizes)
+        return _tick_when_done(self.imap(fn, tasks, shared), tick, sizes)
+
+
+def _tick_when_done(results: Iterator[tuple[int, Any]], tick: Callable[[int], object] | None,
+                    sizes: Sequence[int]) -> Iterator[tuple[int, Any]]:
+    """``results`` of tasks run elsewhere, with ``tick(sizes[index])`` as each arrives."""
+    for index, result in results:
+        if tick is not None:
+            tick(sizes[index])
+        yield index, result
 
 
 #: per-process state of pool workers: the task function and the shared arguments
@@ -144,8 +229,6 @@ class DaskExecutor:
     client: Any
     scheduler: str
     workers: int
-    serial: bool = False
-    distributes_blocks: bool = True
 
     def imap(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = ()
              ) -> Iterator[tuple[int, Any]]:
@@ -166,10 +249,36 @@ class DaskExecutor:
             for future in futures:
                 future.cancel()
 
+    def concurrency(self) -> int:
+        """The cluster's worker count when the executor started."""
+        return max(1, self.workers)
+
+    def imap_progress(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                      tick: Callable[[int], object] | None = None,
+                      sizes: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
+        """:meth:`imap` with ``tick(sizes[index])`` as each task finishes."""
+        return _tick_when_done(self.imap(fn, tasks, shared), tick, sizes)
+
+    def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
+                   warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
+        """The tasks of a block pass as cluster tasks (:meth:`imap`), in any order.
+
+        ``warm_up`` is not called: nothing is matched in this process, and
+        each worker compiles its kernels on its first block.
+        """
+        return self.imap(fn, tasks, shared)
+
+    def returns_blocks(self) -> bool:
+        """False: a block task returns reductions only, never a block of distances."""
+        return False
 
     def describe(self) -> dict[str, Any]:
         """For config files: which scheduler, how many workers."""
         return {"scheduler": self.scheduler, "workers": self.workers}
+
+    def run_config(self) -> dict[str, Any]:
+        """The ``engine`` block of ``config.yaml``: the scheduler and its workers."""
+        return self.describe()
 
 
 Executor = SerialExecutor | ProcessExecutor | DaskExecutor

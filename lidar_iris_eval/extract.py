@@ -520,20 +520,18 @@ def _compute_chunks(seq, descriptors, todo, workers, bar, executor=None) -> Iter
     """Yield ``((a, b), outputs)`` for each range in ``todo`` (any order with a pool).
 
     ``outputs`` holds one arrays dict per descriptor of ``descriptors``. The
-    executor runs the chunks (``imap``: in this process, its process pool or
-    Dask tasks); without one, the local executor of ``workers``.
+    executor runs the chunks (``imap_progress``: in this process, its process
+    pool or Dask tasks) and moves ``bar`` as far as it can see; without one,
+    the local executor of ``workers``.
     """
     from lidar_iris_eval.executor import local_executor
 
     executor = local_executor(workers) if executor is None else executor
-    if executor.serial:  # in this process: the bar moves scan by scan
-        for a, b in todo:
-            yield (a, b), _compute_range(seq, descriptors, a, b, bar.update)
-        return
-    for index, outputs in executor.imap(_compute_range, todo, shared=(seq, descriptors)):
-        a, b = todo[index]
-        bar.update(b - a)
-        yield (a, b), outputs
+    # in this process the bar moves scan by scan; from a pool or cluster, chunk by chunk
+    for index, outputs in executor.imap_progress(_compute_range, todo, (seq, descriptors),
+                                                 tick=bar.update,
+                                                 sizes=[b - a for a, b in todo]):
+        yield todo[index], outputs
 
 
 def _compute_range(seq, descriptors, a: int, b: int, tick=None):

@@ -172,8 +172,14 @@ def test_distributed_block_paths_give_the_same_band(seq):
     from lidar_iris_eval.io import open_sequence
     from lidar_iris_eval.matching.blocks import best_matches
 
-    def BlockTasks():  # noqa: N802 - serial, but takes the distributed code paths
-        return SerialExecutor(distributes_blocks=True)
+    class BlockTasks(SerialExecutor):
+        """Serial, but answers as a cluster does: block tasks return reductions only."""
+
+        def run_blocks(self, fn, tasks, shared=(), warm_up=None):
+            return self.imap(fn, tasks, shared)
+
+        def returns_blocks(self):
+            return False
 
     sequence = open_sequence(seq)
     desc = get_descriptor("m2dp")

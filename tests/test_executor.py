@@ -22,15 +22,14 @@ from lidar_iris_eval.matching.blocks import best_matches
 
 @dataclass(frozen=True)
 class ReversedExecutor(SerialExecutor):
-    """Distributes blocks; yields the last task first."""
+    """Runs block tasks as a cluster would: no warm-up, reductions only, last task first."""
 
-    serial: bool = False
-    distributes_blocks: bool = True
-
-    def imap(self, fn, tasks, shared=()):
+    def run_blocks(self, fn, tasks, shared=(), warm_up=None):
         self.calls.append(len(tasks))
-        for index in reversed(range(len(tasks))):
-            yield index, fn(*shared, *tasks[index])
+        return ((index, fn(*shared, *tasks[index])) for index in reversed(range(len(tasks))))
+
+    def returns_blocks(self):
+        return False
 
     @property
     def calls(self):
@@ -80,6 +79,119 @@ def test_distributed_stream_equals_serial(data):
 
 
 def test_executors_from_the_options():
-    assert local_executor(1).serial and local_executor(3).workers == 3
+    assert local_executor(1).concurrency() == 1 and local_executor(3).concurrency() == 3
     with open_executor("processes", 2) as ex:
-        assert not ex.distributes_blocks and ex.workers == 2
+        assert ex.returns_blocks() and ex.workers == 2
+        assert ex.run_config() == {"scheduler": "processes"}
+
+
+class _SlowCount:
+    """An untimed reducer whose part takes 50 ms: a bookkeeping cost, not matching cost."""
+
+    timed = False
+
+    def __init__(self):
+        self.rows = 0
+
+    def part(self, rows, d, y):
+        import time
+
+        time.sleep(0.05)
+        return len(rows)
+
+    def merge(self, part):
+        self.rows += part
+
+
+def test_untimed_parts_run_here_are_not_matching_time(data):
+    from lidar_iris_eval.matching.blocks import BestInRow, block_pass
+
+    descs, _, _ = data
+    best, slow = BestInRow(len(descs), 7), _SlowCount()
+    blocks = best.blocks(200)  # 200 pairs a block: several blocks
+    evaluations, seconds = block_pass(ToyHist(), descs, blocks, [best, slow])
+    assert slow.rows == sum(len(rows) for rows, _ in blocks) and len(blocks) >= 4
+    assert evaluations == sum(len(rows) * width for rows, width in blocks)
+    assert 0 <= seconds < 0.05 * len(blocks) / 2  # the sleeps (>= 0.2 s) are not counted
+
+
+# --- progress: scan by scan in this process, task by task from a pool -----------------------
+
+def _count_units(n, tick=None):
+    """A task of ``n`` units that ticks once per unit when it may (in this process)."""
+    for _ in range(n):
+        if tick is not None:
+            tick(1)
+    return 10 * n
+
+
+@pytest.mark.parametrize("make", [SerialExecutor, lambda: local_executor(2)])
+def test_imap_progress_ticks_per_unit_here_and_per_task_from_a_pool(make):
+    sizes = [3, 5, 2]
+    ticks: list[int] = []
+    got = dict(make().imap_progress(_count_units, [(n,) for n in sizes], tick=ticks.append,
+                                    sizes=sizes))
+    assert got == {0: 30, 1: 50, 2: 20}
+    if isinstance(make(), type(local_executor(2))):  # the pool: one tick per finished task
+        assert sorted(ticks) == [2, 3, 5]
+    else:  # here: one tick per unit, as the task does them
+        assert ticks == [1] * 10
+
+
+class _Bar:
+    def __init__(self):
+        self.ticks: list[int] = []
+
+    def update(self, k):
+        self.ticks.append(k)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_extraction_bar_moves_scan_by_scan_only_in_this_process(tmp_path, workers):
+    from synthetic_loop import loop_sequence
+
+    from lidar_iris_eval.descriptors import get_descriptor
+    from lidar_iris_eval.extract import _compute_chunks
+    from lidar_iris_eval.io import open_sequence
+
+    seq = open_sequence(loop_sequence(tmp_path / "seq", frames=12))
+    bar = _Bar()
+    todo = [(0, 5), (5, 12)]
+    done = dict(_compute_chunks(seq, [get_descriptor("m2dp")], todo, workers, bar))
+    assert sorted(done) == todo
+    assert sorted(bar.ticks) == ([1] * 12 if workers == 1 else [5, 7])
+
+
+# --- a LirisError raised in a worker arrives as the same LirisError ----------------------------
+
+def test_a_liris_error_crosses_dask_as_itself():
+    pytest.importorskip("distributed")
+    from lidar_iris_eval.errors import LirisError
+    from lidar_iris_eval.executor import check_scheduler
+
+    with open_executor("local", 1) as ex:
+        assert not ex.returns_blocks() and ex.concurrency() == 1
+        assert ex.run_config() == {"scheduler": "local", "workers": 1}
+        with pytest.raises(LirisError) as info:
+            list(ex.imap(check_scheduler, [("bogus",)]))
+    assert type(info.value) is LirisError
+    assert info.value.source == "--scheduler bogus"
+    assert info.value.problem.startswith("choose processes, local or")
+
+
+@pytest.mark.parametrize("engine", [["--workers", "2"], ["--scheduler", "local", "--workers", "1"]])
+def test_a_bad_scan_in_a_worker_is_one_line_exit_2(tmp_path, capsys, monkeypatch, engine):
+    from conftest import run_cli
+    from synthetic_loop import loop_sequence
+
+    if "local" in engine:
+        pytest.importorskip("distributed")
+    monkeypatch.setenv("LIRIS_CACHE_DIR", str(tmp_path / "cache"))
+    seq = loop_sequence(tmp_path / "seq")  # 70 scans: chunks [0, 50) and [50, 70)
+    (seq / "velodyne" / "000060.bin").write_bytes(b"\0" * 17)  # truncated, in the 2nd chunk
+    code, _, err = run_cli(["eval", seq, "-d", "m2dp", "--protocol", "1", "-q",
+                            "--out", tmp_path / "run", *engine], capsys)
+    assert code == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("liris: error: "), err[-500:]
+    assert "000060.bin" in lines[0] and "Traceback" not in err

@@ -383,12 +383,35 @@ def test_loop_finder_sees_a_block_loop():
     assert _loops_calling_pairwise("def f(d, x):\n    return d.pairwise(x, x)\n") == set()
 
 
+def _loops_over_block_tasks(source: str) -> set[str]:
+    """Names of the functions with a for/while loop over ``*.run_blocks(_block_task, ...)``."""
+    import ast
+
+    found = set()
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        runs = {t.id for node in ast.walk(fn) if isinstance(node, ast.Assign)
+                and isinstance(node.value, ast.Call)
+                and getattr(node.value.func, "attr", None) == "run_blocks"
+                and getattr(node.value.args[0], "id", None) == "_block_task"
+                for t in node.targets if isinstance(t, ast.Name)}
+        for loop in ast.walk(fn):
+            if isinstance(loop, ast.For) and getattr(loop.iter, "id", None) in runs:
+                found.add(fn.name)
+    return found
+
+
 def test_one_block_loop():
-    loops = set()
+    loops, over_tasks = set(), set()
     for path in _PASS_MODULES:
-        loops |= _loops_calling_pairwise((ROOT / path).read_text())
-    # positive_values: protocol 2's positives, computed before the pass (not a block pass)
-    assert loops == {"block_pass", "positive_values"}
+        text = (ROOT / path).read_text()
+        loops |= _loops_calling_pairwise(text)
+        over_tasks |= _loops_over_block_tasks(text)
+    # positive_values: protocol 2's positives, computed before the pass (not a block pass);
+    # every block's distances come from _block_task, run where the executor decides
+    assert loops == {"positive_values"}
+    assert over_tasks == {"block_pass"}
 
 
 class _ShapeDependent:

@@ -83,8 +83,7 @@ def evaluate_many(runs: list[PlannedRun], req: EvalRequest) -> Path:
     per_run = []
     try:
         with open_executor(scheduler, workers) as executor:
-            engine_info = (executor.describe() if executor.distributes_blocks
-                           else {"scheduler": scheduler})
+            engine_info = executor.run_config()
             for name, (seq, descriptors, protocols) in zip(names, prepared, strict=True):
                 if not quiet:
                     click.echo(f"{name}: {', '.join(d.name for d in descriptors)}, "

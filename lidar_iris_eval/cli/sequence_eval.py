@@ -92,8 +92,7 @@ def run_sequence(req: EvalRequest) -> None:
             from lidar_iris_eval.evaluation.seeds import evaluate_seeds
 
             run = evaluate_seeds(run_once, descriptors, req.seeds)
-        engine_info = (executor.describe() if executor.distributes_blocks
-                       else {"scheduler": req.scheduler})
+        engine_info = executor.run_config()
     extra = {**req.config_extra(), "engine": engine_info, "odometry": req.odometry,
              **({"odometry_file": str(req.odometry_path)}
                 if req.odometry_path is not None else {}),

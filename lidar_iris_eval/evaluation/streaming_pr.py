@@ -418,9 +418,10 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
         (:func:`~lidar_iris_eval.matching.blocks.query_limits`), to take its
         best matches from the same pass; None for protocol 2 only.
     storage : which affinity to keep (:data:`AFFINITY_STORAGE`).
-    executor : a :mod:`lidar_iris_eval.executor` executor; one that
-        distributes blocks (Dask) runs each block as a task returning
-        reductions only. The metrics are the same bit for bit.
+    executor : a :mod:`lidar_iris_eval.executor` executor; it decides where
+        the blocks run. One whose block tasks return reductions only
+        (``returns_blocks()`` False: Dask) keeps no affinity. The metrics are
+        the same bit for bit.
 
     Memory is O(N + positives) plus one block of distances and the kept
     affinity (none, decimated or full, per ``storage``).
@@ -437,7 +438,6 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
         BestInRow,
         block_pass,
         row_blocks,
-        warm_up,
     )
 
     budget = DEFAULT_PAIR_BUDGET if pair_budget is None else pair_budget
@@ -450,14 +450,11 @@ def stream_protocol2(descriptor, descriptors, pairs: np.ndarray, n_positive_pair
     expected, pre_evaluations = positive_values(descriptor, descriptors, pp, count=True)
     pre_s = time.perf_counter() - start
     kind = resolve_storage(storage, n)
-    distributed = executor is not None and executor.distributes_blocks
-    if distributed:  # blocks return reductions only: no affinity comes back
+    if executor is not None and not executor.returns_blocks():  # reductions only come back
         if storage != "auto" and kind != "none" and n > 0:
             warn("protocol 2 on a Dask cluster", f"blocks return counts only; the {kind} "
                  "affinity is not kept (metrics are exact and complete)")
         kind = "none"
-    else:
-        warm_up(descriptor, descriptors)
     blocks = row_blocks(n, budget, symmetric)
     count = CountNegatives(StreamingPR(expected, pp.weight), pp, expected, symmetric)
     keep = KeepAffinity(symmetric, n, kind)

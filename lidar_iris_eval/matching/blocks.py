@@ -24,6 +24,7 @@ treated as "no match": they never win a best-match search.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -32,6 +33,7 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.errors import LirisError, option
+from lidar_iris_eval.executor import SerialExecutor
 
 #: default number of distances computed per block (256 queries x 4096 frames)
 DEFAULT_PAIR_BUDGET = 1 << 20
@@ -101,8 +103,9 @@ def warm_up(descriptor: Descriptor, descriptors) -> None:
 
     The first call of a numba kernel compiles it (or loads it from numba's
     cache); timing that would report compilation as matching cost (13x on a
-    fresh install for LiDAR Iris protocol 2). Every timed loop calls this
-    just before starting its clock.
+    fresh install for LiDAR Iris protocol 2). :func:`block_pass` has its
+    executor call this just before starting its clock (a cluster's workers
+    compile on their own).
     """
     if len(descriptors) < 2:
         return
@@ -348,10 +351,27 @@ class CallSink(Reducer):
 
 
 def _block_task(descriptor, queries, database, reducers, rows, width):
-    """One block: its distances once, then every reducer's part (also a Dask task)."""
+    """One block: its distances once, then every reducer's part (also a Dask task).
+
+    Returns ``(distances computed, parts, seconds of the untimed reducers' parts,
+    process id)``: the pass subtracts those seconds from its wall clock only
+    when the block ran in its own process (elsewhere they overlapped it).
+    """
     database = queries if database is None else database
     d, y = _pairwise(descriptor, _rows(queries, rows), database[:width])
-    return d.size, [r.part(rows, d, y) for r in reducers]
+    parts, untimed = [], 0.0
+    for reducer in reducers:
+        if reducer.timed:
+            parts.append(reducer.part(rows, d, y))
+        else:
+            began = time.perf_counter()
+            parts.append(reducer.part(rows, d, y))
+            untimed += time.perf_counter() - began
+    return d.size, parts, untimed, os.getpid()
+
+
+#: the executor of a pass given none: everything in this process
+_HERE = SerialExecutor()
 
 
 def block_pass(descriptor: Descriptor, descriptors, blocks, reducers, executor=None,
@@ -362,37 +382,35 @@ def block_pass(descriptor: Descriptor, descriptors, blocks, reducers, executor=N
     ``blocks`` are ``(rows, width)``: query indices (a contiguous run is read
     as a slice) against database frames ``[0, width)``. ``database`` is the
     descriptors queries are matched against (another session's); default the
-    queries' own. ``executor`` (:mod:`lidar_iris_eval.executor`), when it
-    distributes blocks (Dask), runs each block as a task returning the
-    reducers' parts only; merges are exact, so the results do not change.
-    Returns ``(evaluations, seconds)``: distances computed and matching wall
-    time (without the untimed reducers' time).
+    queries' own. ``executor`` (:mod:`lidar_iris_eval.executor`; default this
+    process) decides where the blocks run (``run_blocks``): a local one in this
+    process, after warming the kernels up; Dask as tasks returning the reducers'
+    parts only. Merges are exact and in block order here, so the results do not
+    depend on the executor. Returns ``(evaluations, seconds)``: distances computed
+    and matching wall time (without the untimed reducers' time spent in this
+    process).
     """
     reducers = list(reducers)
+    runner = _HERE if executor is None else executor
+    shared = (descriptor, descriptors, database, tuple(reducers))
+    results = runner.run_blocks(_block_task, blocks, shared,
+                                warm_up=lambda: warm_up(descriptor, descriptors))
+    here = os.getpid()
     evaluations, untimed = 0, 0.0
     start = time.perf_counter()
-    if executor is not None and executor.distributes_blocks:
-        shared = (descriptor, descriptors, database, tuple(reducers))
-        for index, (size, parts) in executor.imap(_block_task, blocks, shared=shared):
-            for reducer, part in zip(reducers, parts, strict=True):
-                reducer.merge(part)
-            evaluations += int(size)
-            if progress is not None:
-                progress(len(blocks[index][0]))
-        return evaluations, time.perf_counter() - start
-    target = descriptors if database is None else database
-    for rows, width in blocks:
-        d, y = _pairwise(descriptor, _rows(descriptors, rows), target[:width])
-        evaluations += d.size
-        for reducer in reducers:
+    for index, (size, parts, parts_s, pid) in results:
+        if pid == here:
+            untimed += parts_s
+        for reducer, part in zip(reducers, parts, strict=True):
             if reducer.timed:
-                reducer.merge(reducer.part(rows, d, y))
+                reducer.merge(part)
             else:
                 began = time.perf_counter()
-                reducer.merge(reducer.part(rows, d, y))
+                reducer.merge(part)
                 untimed += time.perf_counter() - began
+        evaluations += int(size)
         if progress is not None:
-            progress(len(rows))
+            progress(len(blocks[index][0]))
     return evaluations, time.perf_counter() - start - untimed
 
 
@@ -416,15 +434,14 @@ def best_matches(
     limits (:func:`query_limits`). A block of queries is compared with the
     database its last query may see; the few pairs beyond each query's own
     limit are masked out. ``executor`` (:mod:`lidar_iris_eval.executor`), when
-    given, runs the blocks (e.g. as Dask tasks); the results do not change.
+    given, decides where the blocks run (see :func:`block_pass`; e.g. as Dask
+    tasks); the results do not change.
 
     ``exclude`` may also be ``(K, N)`` limits (``--convention-band``): one pass
     over the union of their queries and databases, and a list of ``K``
     :class:`BestMatches`, each equal to a search under its own limits.
     """
     best = BestInRow(len(descriptors), exclude)
-    if executor is None or not executor.distributes_blocks:
-        warm_up(descriptor, descriptors)  # compilation is not matching cost
     evaluations, seconds = block_pass(descriptor, descriptors, best.blocks(pair_budget), [best],
                                       executor, progress)
     return best.result(seconds, evaluations, "exhaustive")
@@ -460,7 +477,6 @@ def affinity_matrix(
     best = BestInRow(n, exclude) if exclude is not None else None
     reducers = [r for r in (matrix, CallSink(sink) if sink is not None else None, best)
                 if r is not None]
-    warm_up(descriptor, descriptors)  # compilation is not matching cost
     evaluations, seconds = block_pass(descriptor, descriptors,
                                       row_blocks(n, pair_budget, symmetric), reducers,
                                       progress=progress)

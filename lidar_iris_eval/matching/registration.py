@@ -359,8 +359,9 @@ def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray 
     """:func:`refine_pairs` for several passes ``(query, match, initial)`` at once.
 
     The rows of every pass with ``match >= 0`` are sorted by query scan (by
-    match scan on workers) and cut into tasks; with an ``executor`` of several processes
-    (:meth:`~lidar_iris_eval.executor.SerialExecutor.imap`) the tasks run
+    match scan on workers) and cut into tasks; with an ``executor`` that runs several
+    tasks at once (``concurrency() > 1``:
+    :meth:`~lidar_iris_eval.executor.SerialExecutor.imap`) the tasks run
     in parallel, each worker preparing a scan once and reusing it for every
     loop it registers with that scan. Every registration is a pure function
     of the two scans and its initial pose, so the poses are the serial ones
@@ -407,8 +408,8 @@ def refine_many(sequence, passes: list[tuple[np.ndarray, np.ndarray, np.ndarray 
     for r, u in enumerate(unique):
         rows_of.setdefault(int(u), []).append(r)
     todo = np.array(sorted(rows_of), dtype=np.int64)
-    workers = 1 if executor is None else int(getattr(executor, "workers", 1))
-    parallel = executor is not None and not executor.serial and workers > 1
+    workers = 1 if executor is None else executor.concurrency()
+    parallel = workers > 1  # else here, sharing ``cache`` (nothing to gain from shipping)
     # serial: by query (the planned cache then prepares each scan once); workers: by match,
     # so the loops of one match scan sit in one task (small-mixed, 370 loops, 2 workers with
     # an LRU of 64: 522 preparations for 400 scans, against 602 by query)
