@@ -101,3 +101,18 @@ def test_descriptor_equals_all_previous_routes(clouds, monkeypatch):
     old = [desc.compute(c) for c in clouds]
     for a, b in zip(new, old, strict=True):
         assert np.array_equal(a, b)
+
+
+def test_compiled_triangle_geometry_equals_numpy(clouds):
+    """Sides, areas and angle bins of random triplets (degenerate ones included)."""
+    rng = np.random.default_rng(3)
+    for cloud in clouds:
+        pts = esf.normalise(cloud)
+        idx = rng.integers(0, len(pts), size=(5000, 3))
+        idx[:50, 1] = idx[:50, 0]  # repeated corners: zero sides, NaN angles
+        got = esf._triangle_geometry_compiled(pts, idx)
+        want = esf._triangle_geometry(*(pts[idx[:, j]] for j in range(3)))
+        for g, w in zip(got, want, strict=True):
+            assert g.dtype == w.dtype == np.float32 and g.shape == w.shape
+            assert np.array_equal(g, w, equal_nan=True)
+        assert np.isnan(got[2][:50]).any()

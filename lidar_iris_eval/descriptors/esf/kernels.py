@@ -248,3 +248,60 @@ def column_means(points):  # pragma: no cover - compiled
     out[1] = s1 / n
     out[2] = s2 / n
     return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def triangle_geometry(points, idx):  # pragma: no cover - compiled
+    """Sides, squared Heron area and the three cosines of each triplet, float32.
+
+    The gather and the float32 maths of :func:`.descriptor._triangle_geometry`
+    per triplet, with no ``(B, 3)`` temporaries (six of them, each a random
+    gather or an ``einsum``): every value is formed in float32 in that
+    function's order (an ``einsum`` dot product is ``0 + x0*y0 + x1*y1 +
+    x2*y2``), so sides and areas are bitwise equal and the cosines are the
+    ones its ``arccos`` receives (tested). Degenerate sides give inf/NaN as
+    in NumPy (``error_model="numpy"``), and the triplet is redrawn.
+
+    Parameters
+    ----------
+    points : (N, 3) float32, normalised
+    idx : (B, 3) int64 triplets
+
+    Returns
+    -------
+    sides : (B, 3) float32, sides 12, 13, 23
+    heron : (B,) float32
+    cosines : (B, 3) float32, at p1, p3, p2
+    """
+    n = idx.shape[0]
+    sides = np.empty((n, 3), np.float32)
+    heron = np.empty(n, np.float32)
+    cosines = np.empty((n, 3), np.float32)
+    zero = np.float32(0.0)
+    half = np.float32(0.5)
+    for i in range(n):
+        i1, i2, i3 = idx[i, 0], idx[i, 1], idx[i, 2]
+        v21x = points[i2, 0] - points[i1, 0]
+        v21y = points[i2, 1] - points[i1, 1]
+        v21z = points[i2, 2] - points[i1, 2]
+        v31x = points[i3, 0] - points[i1, 0]
+        v31y = points[i3, 1] - points[i1, 1]
+        v31z = points[i3, 2] - points[i1, 2]
+        v23x = points[i2, 0] - points[i3, 0]
+        v23y = points[i2, 1] - points[i3, 1]
+        v23z = points[i2, 2] - points[i3, 2]
+        a = np.sqrt(zero + v21x * v21x + v21y * v21y + v21z * v21z)
+        b = np.sqrt(zero + v31x * v31x + v31y * v31y + v31z * v31z)
+        c = np.sqrt(zero + v23x * v23x + v23y * v23y + v23z * v23z)
+        s = (a + b + c) * half
+        heron[i] = s * (s - a) * (s - b) * (s - c)
+        sides[i, 0] = a
+        sides[i, 1] = b
+        sides[i, 2] = c
+        u21x, u21y, u21z = v21x / a, v21y / a, v21z / a
+        u31x, u31y, u31z = v31x / b, v31y / b, v31z / b
+        u23x, u23y, u23z = v23x / c, v23y / c, v23z / c
+        cosines[i, 0] = zero + u21x * u31x + u21y * u31y + u21z * u31z
+        cosines[i, 1] = zero + u23x * u31x + u23y * u31y + u23z * u31z
+        cosines[i, 2] = zero + u23x * u21x + u23y * u21y + u23z * u21z
+    return sides, heron, cosines
