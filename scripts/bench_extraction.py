@@ -19,7 +19,8 @@ never as a ratio (``liris bench --cpp DIR`` times your own build in the run).
 Previous routes: Scan Context's sort-based voxel grid and the batched
 ``pairwise`` for one pair; M2DP's ``atan2`` route (float64 aligned cloud,
 float32 ``arctan2``, compiled binning: the previous release's default); ESF's
-``trace_lines_numpy``, ``normalise_numpy`` and ``sample_triangles_previous``.
+``esf_histogram_numpy`` (tracing and histograms), ``trace_lines_numpy``,
+``normalise_numpy`` and ``sample_triangles_previous`` (NumPy triplet geometry).
 """
 
 from __future__ import annotations
@@ -57,8 +58,9 @@ def previous(name: str):
         module, attr, old = sc_module.voxel, "voxel_centroids", lambda *a, **k: None
     elif name == "m2dp":  # the atan2 route (route: atan2), which the fast route replaced
         module, attr, old = m2dp_module, "fast_route_applies", lambda params: False
-    else:  # NumPy tracing, NumPy normalisation, geometry recomputed for kept triplets
-        swaps = [(esf_module, "trace_lines", esf_module.trace_lines_numpy),
+    else:  # NumPy histograms and tracing, NumPy normalisation, NumPy geometry recomputed
+        swaps = [(esf_module, "esf_histogram", esf_module.esf_histogram_numpy),
+                 (esf_module, "trace_lines", esf_module.trace_lines_numpy),
                  (esf_module, "normalise", esf_module.normalise_numpy),
                  (esf_module, "sample_triangles", esf_module.sample_triangles_previous)]
         with contextlib.ExitStack() as stack:

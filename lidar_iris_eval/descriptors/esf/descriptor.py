@@ -106,15 +106,16 @@ def pcl_round(x: np.ndarray) -> np.ndarray:
 def normalise(points: np.ndarray) -> np.ndarray:
     """Centre on the centroid and scale the farthest point to distance 32 (float32).
 
-    The centroid is NumPy's float64 mean; centring, the farthest distance and
-    the scaling are compiled (:func:`.kernels.centred_scaled`), bitwise equal
-    to :func:`normalise_numpy` (tested).
+    The centroid (:func:`.kernels.column_means`, NumPy's float64 mean), centring,
+    the farthest distance and the scaling are compiled
+    (:func:`.kernels.centred_scaled`), bitwise equal to :func:`normalise_numpy`
+    (tested).
     """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.dtype not in (np.float32, np.float64):
         return normalise_numpy(points)
     pts = np.ascontiguousarray(pts)
-    mean = pts.astype(np.float64).mean(axis=0)
+    mean = kernels.column_means(pts)
     out, max_dist = kernels.centred_scaled(pts, mean, float(HALF))
     if not max_dist > 0.0:
         raise LirisError("points", "ESF needs points that are not all identical")
@@ -254,7 +255,25 @@ def _triangle_geometry(p1, p2, p3):
     return np.stack([a, b, c], axis=1), heron, angles
 
 
-def _draw_batches(points: np.ndarray, samples: int, rng: np.random.Generator):
+def _triangle_geometry_compiled(points: np.ndarray, idx: np.ndarray):
+    """:func:`_triangle_geometry` of ``points[idx]``: the gather, sides, areas and
+    cosines compiled (:func:`.kernels.triangle_geometry`), the ``arccos`` and
+    its binning in NumPy (NumPy's float32 ``arccos`` may be a SIMD routine
+    that libm's would not match). Bitwise the same arrays (tested)."""
+    sides, heron, cosines = kernels.triangle_geometry(points, idx)
+    half_pi, top = np.float32(np.pi / 2), np.float32(BINS - 1)
+    with np.errstate(invalid="ignore"):
+        np.abs(cosines, out=cosines)
+        angles = np.arccos(cosines, out=cosines)
+        angles /= half_pi
+        angles *= top
+        angles += np.float32(0.5)
+        np.floor(angles, out=angles)
+    return sides, heron, angles
+
+
+def _draw_batches(points: np.ndarray, samples: int, rng: np.random.Generator,
+                  compiled: bool = True):
     """Draw batches of triplets until ``samples`` are valid, redrawing as PCL would.
 
     Yields ``(idx, sides, heron, angles, ok)`` per batch, ``ok`` marking the
@@ -263,7 +282,10 @@ def _draw_batches(points: np.ndarray, samples: int, rng: np.random.Generator):
     so they consume the generator identically and keep the same triplets; each
     keeps what it needs of a batch. Raises the one error line once
     ``_MAX_DRAWS_PER_SAMPLE * samples`` draws have not found enough.
+    ``compiled`` picks :func:`_triangle_geometry_compiled` (float32 points
+    only) over the NumPy :func:`_triangle_geometry`; both give the same arrays.
     """
+    compiled = compiled and points.dtype == np.float32 and points.flags.c_contiguous
     n = len(points)
     have = drawn = 0
     while have < samples:
@@ -276,7 +298,10 @@ def _draw_batches(points: np.ndarray, samples: int, rng: np.random.Generator):
         batch = max(1024, int(1.1 * (samples - have)))
         idx = rng.integers(0, n, size=(batch, 3))
         drawn += batch
-        sides, heron, angles = _triangle_geometry(*(points[idx[:, j]] for j in range(3)))
+        if compiled:
+            sides, heron, angles = _triangle_geometry_compiled(points, idx)
+        else:
+            sides, heron, angles = _triangle_geometry(*(points[idx[:, j]] for j in range(3)))
         ok = (idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])
         ok &= heron > MIN_HERON
         ok &= np.isfinite(angles).all(axis=1)
@@ -306,14 +331,35 @@ def sample_triangles_previous(points: np.ndarray, samples: int, rng: np.random.G
     in draw order. Kept as the benchmark's baseline (scripts/bench_extraction.py):
     it keeps only the indices of each batch, as it always did.
     """
-    kept = [idx[ok] for idx, _, _, _, ok in _draw_batches(points, samples, rng)]
+    kept = [idx[ok] for idx, _, _, _, ok in _draw_batches(points, samples, rng, compiled=False)]
     idx = np.concatenate(kept)[:samples]
     sides, heron, angles = _triangle_geometry(*(points[idx[:, j]] for j in range(3)))
     return idx, sides, heron, angles.astype(np.int64)
 
 
 def esf_histogram(points: np.ndarray, samples: int, rng: np.random.Generator) -> np.ndarray:
-    """The 640-d ESF of an ``(N, 3)`` cloud (any frame, any scale)."""
+    """The 640-d ESF of an ``(N, 3)`` cloud (any frame, any scale).
+
+    Sampling stays in NumPy (it owns the random stream); the line tracing and
+    the four histograms are one compiled pass (:func:`.kernels.raw_histogram`)
+    instead of ``3 S``-long temporaries, bitwise equal to
+    :func:`esf_histogram_numpy` (tested on real and simulated scans).
+    """
+    pts = normalise(points)
+    vox = voxel_coords(pts)
+    occupied = occupancy(vox)
+    idx, sides, heron, angle_bins = sample_triangles(pts, samples, rng)
+    hist = kernels.raw_histogram(vox.astype(np.int8), np.ascontiguousarray(idx, dtype=np.int64),
+                                 occupied, GRID,
+                                 np.ascontiguousarray(sides), np.ascontiguousarray(heron),
+                                 np.ascontiguousarray(angle_bins), BINS)
+    hist *= np.repeat(WEIGHTS, BINS)
+    return (hist / hist.sum()).astype(np.float32)
+
+
+def esf_histogram_numpy(points: np.ndarray, samples: int, rng: np.random.Generator
+                        ) -> np.ndarray:
+    """The NumPy route of :func:`esf_histogram` (the reference it equals bitwise)."""
     pts = normalise(points)
     vox = voxel_coords(pts)
     occupied = occupancy(vox)
