@@ -5,8 +5,12 @@ Times full-resolution scans (hdl64: 64 x 2048 rays, vlp16: 16 x 1800 rays) in
 the ``small-mixed`` world, one scan per sampled frame including culling and
 traffic, and an end-to-end ``tiny-mixed`` run written to a temporary folder.
 Reports medians. Targets: >= 5 hdl64 scans/s, >= 30 vlp16 scans/s, tiny < 20 s.
+``--workers-frames N`` also times ``small-mixed`` runs of N frames written with one
+and with two worker processes (``liris simulate --workers``), interleaved, and checks
+that both wrote the same bytes; the ratio only means something on an idle machine, so
+the load average is printed beside it.
 
-Usage: python scripts/bench_simulate.py [--scans N] [--repeats R]
+Usage: python scripts/bench_simulate.py [--scans N] [--repeats R] [--workers-frames N]
 """
 
 from __future__ import annotations
@@ -18,8 +22,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
+import hashlib  # noqa: E402
+import shutil  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -57,10 +64,43 @@ def bench_tiny() -> tuple[float, float]:
         return time.perf_counter() - t, time.process_time() - c
 
 
+def tree_digest(folder: Path) -> str:
+    """SHA-256 over every file's relative name and bytes."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        digest.update(path.relative_to(folder).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def bench_workers(frames: int, repeats: int) -> None:
+    """Wall time of ``small-mixed`` at ``frames`` frames with 1 and 2 workers, interleaved."""
+    cfg = resolve_config("small-mixed", dict(frames=frames))
+    walls: dict[int, list[float]] = {1: [], 2: []}
+    digests: dict[int, set[str]] = {1: set(), 2: set()}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(repeats):
+            for workers in (1, 2):
+                out = Path(tmp) / f"w{workers}-{r}"
+                t = time.perf_counter()
+                run_simulation(out, cfg, workers=workers)
+                walls[workers].append(time.perf_counter() - t)
+                digests[workers].add(tree_digest(out))
+                shutil.rmtree(out)
+    one, two = float(np.median(walls[1])), float(np.median(walls[2]))
+    same = len(digests[1] | digests[2]) == 1
+    print(f"small-mixed, {frames} frames written: --workers 1 median {one:.2f} s, --workers 2 "
+          f"median {two:.2f} s ({repeats} interleaved runs each): {one / two:.2f}x; "
+          f"files byte-identical: {'yes' if same else 'NO'}; load average "
+          f"{os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=20, help="frames sampled along the route")
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--workers-frames", type=int, default=0,
+                    help="also time small-mixed runs of this many frames at --workers 1 and 2")
     args = ap.parse_args()
     print(f"load average at start: {os.getloadavg()[0]:.2f} (cores: {os.cpu_count()})")
     for sensor, target in (("hdl64", 5.0), ("vlp16", 30.0)):
@@ -73,6 +113,8 @@ def main() -> None:
     wall, cpu = bench_tiny()
     print(f"tiny-mixed end to end (220 frames, written): {wall:.1f} s wall, {cpu:.1f} s CPU "
           "(target < 20 s)")
+    if args.workers_frames > 0:
+        bench_workers(args.workers_frames, args.repeats)
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
 
 

@@ -13,6 +13,7 @@ import click
 import yaml
 
 from lidar_iris_eval.cache import DescriptorCache, default_cache_dir
+from lidar_iris_eval.cli.options import workers_option
 from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_options
 from lidar_iris_eval.descriptors import Descriptor, available_descriptors, get_descriptor
 from lidar_iris_eval.errors import LirisError, register_flags
@@ -137,8 +138,7 @@ def descriptor_options(func):
                           "sensors.py); auto guesses it from the first scans."),
         click.option("--cache-dir", type=click.Path(path_type=Path), default=None,
                      help="Descriptor cache folder [default: $LIRIS_CACHE_DIR or ./.liris-cache]."),
-        click.option("--workers", type=int, default=1, show_default=True,
-                     help="Processes for extraction and registration (--refine)."),
+        workers_option("extraction and registration (--refine)"),
         click.option("--quiet", "-q", is_flag=True, help="No progress bars."),
         verify_scans_option,
     ]

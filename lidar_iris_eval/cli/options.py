@@ -175,3 +175,19 @@ def deprecated_alias(old: str, new: str, dest: str, **option_kwargs):
         return wrapper
 
     return decorator
+
+
+#: ``--workers``'s default in every verb that has it (``liris eval`` and ``extract``,
+#: ``liris simulate``): one process, so a run is serial unless asked otherwise
+DEFAULT_WORKERS = 1
+
+
+def workers_option(what: str):
+    """The ``--workers`` option, declared once for every verb that runs a process pool.
+
+    ``what`` says what the processes do in that verb (its help text). The
+    check (at least 1, clamped to the usable CPUs with a warning) is attached
+    to every option named ``workers`` in :mod:`lidar_iris_eval.cli`.
+    """
+    return click.option("--workers", type=int, default=DEFAULT_WORKERS, show_default=True,
+                        help=f"Processes for {what}.")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from lidar_iris_eval.cli.options import deprecated_alias
+from lidar_iris_eval.cli.options import deprecated_alias, workers_option
 from lidar_iris_eval.simulate.presets import PRESETS, resolve_config
 from lidar_iris_eval.simulate.sensors import SENSORS
 from lidar_iris_eval.simulate.trajectories import ROUTES
@@ -54,10 +54,11 @@ from lidar_iris_eval.simulate.trajectories import ROUTES
               help="Push-broom mode: every frame is the swathe of an LMS151-like 2-D line "
               "scanner (270 deg, tilted) over this many metres travelled (the ESM paper: 22).")
 @click.option("--overwrite", is_flag=True, help="Replace the contents of a non-empty OUT_DIR.")
+@workers_option("casting and writing the scans (the files are byte-identical for any count)")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_cars, trajectory,
             calib, sessions, session_sensors, season, session_seasons, platform, pushbroom,
-            overwrite, quiet):
+            overwrite, workers, quiet):
     """Simulate a LiDAR sequence with exact ground truth into OUT_DIR.
 
     Writes velodyne/*.bin, labels/*.label (SemanticKITTI), poses.txt (camera
@@ -77,8 +78,10 @@ def command(out_dir, preset, frames, sensor, route, azimuth_steps, seed, moving_
         from lidar_iris_eval.simulate.sessions import run_sessions
 
         report = run_sessions(out_dir, cfg, sessions, tuple(session_sensors), overwrite,
-                              not quiet, preset, seasons=tuple(session_seasons))
+                              not quiet, preset, seasons=tuple(session_seasons),
+                              workers=workers)
         click.echo(report.summary())
         return
-    report = run_simulation(out_dir, cfg, overwrite=overwrite, progress=not quiet, preset=preset)
+    report = run_simulation(out_dir, cfg, overwrite=overwrite, progress=not quiet, preset=preset,
+                            workers=workers)
     click.echo(report.summary())

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from lidar_iris_eval import __version__
 from lidar_iris_eval.errors import LirisError
+from lidar_iris_eval.executor import Executor, SerialExecutor, local_executor
 from lidar_iris_eval.lifetime import remove_stale_temps, temp_prefix
 from lidar_iris_eval.simulate import labels
 from lidar_iris_eval.simulate.presets import SimConfig, manifest_config, resolve_config
@@ -249,9 +250,14 @@ class SimReport:
 
 def run_simulation(
     out_dir: str | Path, cfg: SimConfig, overwrite: bool = False, progress: bool = False,
-    preset: str | None = None,
+    preset: str | None = None, workers: int = 1,
 ) -> SimReport:
     """Simulate ``cfg`` into ``out_dir`` (see :func:`simulate_sequence`).
+
+    ``workers`` processes cast and write the frames (``liris simulate
+    --workers``); the files are byte-identical for every count, because each
+    frame draws its noise from its own stream ``(seed, part, session, frame)``
+    and never from a generator shared with the frames before it.
 
     The sequence is built in a temporary folder beside ``out_dir``
     (``.<name>.tmp-<host>-<pid>-…``) and moved into place only when complete, so
@@ -262,6 +268,7 @@ def run_simulation(
     """
     out_dir = Path(out_dir)
     cfg = with_frames(cfg)
+    executor = local_executor(workers)  # a bad count fails before anything is built
     check_out_dir(out_dir, overwrite)
     start = time.perf_counter()
     scen = build_scenario(cfg)  # before any folder exists: a bad option leaves nothing
@@ -274,11 +281,12 @@ def run_simulation(
             from lidar_iris_eval.simulate.pushbroom import write_swathes
 
             frames, points, revisits, revisits_camera = write_swathes(
-                scen, preset, work, _class_names(cfg.world_style))
+                scen, preset, work, _class_names(cfg.world_style), executor, progress)
             report = SimReport(out_dir, cfg, frames, points, revisits,
                                time.perf_counter() - start, revisits_camera)
         else:
-            report = write_scenario(out_dir, scen, preset, start, progress, work=work)
+            report = write_scenario(out_dir, scen, preset, start, progress, work=work,
+                                    executor=executor)
         publish(work, out_dir)
     except LirisError as err:  # name the file the user asked for, not its temporary folder
         source = err.source or ""
@@ -300,7 +308,7 @@ def with_frames(cfg: SimConfig) -> SimConfig:
 def write_scenario(
     out_dir: Path, scen: Scenario, preset: str | None, start: float, progress: bool,
     session: int = 0, origin: np.ndarray | None = None, extra: dict | None = None,
-    work: Path | None = None,
+    work: Path | None = None, executor: Executor | None = None,
 ) -> SimReport:
     """Cast every scan of ``scen`` and write the KITTI layout into a prepared ``out_dir``.
 
@@ -309,21 +317,23 @@ def write_scenario(
     first pose of ``scen``; another session's first pose puts both sessions
     in one frame); ``extra`` entries are added to ``manifest.json``; ``work``
     is the folder the files go to (default ``out_dir``; :func:`run_simulation`
-    builds in a temporary folder and moves it into place).
+    builds in a temporary folder and moves it into place); ``executor`` runs
+    :func:`cast_and_write` for every frame (default: serially, in order). The
+    scans may finish in any order; ``poses.txt``, ``times.txt``, ``calib.txt``
+    and ``manifest.json`` are written here afterwards, each atomically.
     """
     cfg = scen.config
     work = out_dir if work is None else work
     n = len(scen.poses)
-    dirs = scen.sensor.grid.directions
+    executor = SerialExecutor() if executor is None else executor
     total_points = 0
     desc = "simulate" if session == 0 else f"simulate session {session}"
-    for i in tqdm(range(n), desc=desc, unit="scan", disable=not progress, leave=False):
-        rng = np.random.default_rng(stream_key(cfg.seed, _NOISE, session) + [i])
-        scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(i), scen.poses[i],
-                             rng, dirs)
-        write_scan(work, i, scan.points, scan.intensity, scan.label,
-                   scen.object_ids(i, scan.row))
-        total_points += len(scan.points)
+    with tqdm(total=n, desc=desc, unit="scan", disable=not progress, leave=False) as bar:
+        for _, points in executor.imap(cast_and_write, [(i,) for i in range(n)],
+                                       shared=(scen, scen.sensor.grid.directions, work,
+                                               session)):
+            total_points += points
+            bar.update(1)
     if work == out_dir:  # written in place (a session folder): drop an older run's extra scans
         remove_stale(work, n)
     revisits = revisit_queries(scen.poses[:, :3, 3])
@@ -353,6 +363,25 @@ def write_scenario(
                      int(len(revisits_camera)))
 
 
+def cast_and_write(scen: Scenario, dirs: np.ndarray, work: Path, session: int,
+                   frame: int) -> int:
+    """Cast scan ``frame`` of ``scen`` and write its files into ``work``; its point count.
+
+    One task of :func:`write_scenario` (run in a worker process with
+    ``--workers``; ``dirs`` are the sensor's ray directions, computed once).
+    The noise generator is made here from the frame's own key
+    ``stream_key(seed, _NOISE, session) + [frame]``, so the scan depends only on
+    the scenario and ``frame``, not on which process casts it or when; the
+    frame's files have names of their own, so tasks never write the same file.
+    """
+    rng = np.random.default_rng(stream_key(scen.config.seed, _NOISE, session) + [frame])
+    scan = simulate_scan(scen.sensor, scen.world.ground, scen.primitives(frame),
+                         scen.poses[frame], rng, dirs)
+    write_scan(work, frame, scan.points, scan.intensity, scan.label,
+               scen.object_ids(frame, scan.row))
+    return len(scan.points)
+
+
 def _class_names(style: str) -> dict[int, str]:
     if style == "default":
         return labels.CLASS_NAMES
@@ -372,6 +401,7 @@ def simulate_sequence(
     preset: str | None = "tiny-mixed",
     overwrite: bool = False,
     progress: bool = False,
+    workers: int = 1,
     **overrides,
 ) -> Path:
     """Simulate a sequence and write it in KITTI layout to ``out_dir``.
@@ -387,6 +417,8 @@ def simulate_sequence(
         Replace the contents of a non-empty ``out_dir``.
     progress
         Show a tqdm bar on stderr.
+    workers
+        Processes that cast and write the frames (1: in this process).
     **overrides
         :class:`SimConfig` fields (``frames``, ``sensor``, ``route``,
         ``azimuth_steps``, ``seed``, ``moving_cars``, ``trajectory``, ...).
@@ -395,7 +427,8 @@ def simulate_sequence(
     Returns
     -------
     Path
-        ``out_dir``. The same configuration always gives byte-identical files.
+        ``out_dir``. The same configuration always gives byte-identical files,
+        whatever ``workers``.
     """
     cfg = resolve_config(preset, overrides)
-    return run_simulation(out_dir, cfg, overwrite, progress, preset).out_dir
+    return run_simulation(out_dir, cfg, overwrite, progress, preset, workers).out_dir

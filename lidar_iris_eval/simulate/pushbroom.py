@@ -27,6 +27,7 @@ modelled), 12 mm statistical error (1 sigma).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -101,67 +102,125 @@ def swathes(scenario, swathe_length: float = PAPER_SWATHE_LENGTH, line_spacing: 
     ``seed`` None: noise-free lines with nothing dropped (for tests). Only
     complete swathes are returned.
     """
-    if not swathe_length > 0:
-        raise LirisError("swathe_length", f"must be positive, got {swathe_length}")
-    mount = mount or PushBroomMount()
-    m = mount.transform()
-    poses, s = line_poses(scenario.poses, line_spacing)
-    dirs = sensor.grid.directions
-    out = []
-    n_swathes = int(s[-1] // swathe_length)
-    for w in range(n_swathes):
-        lines = np.nonzero((s >= w * swathe_length) & (s < (w + 1) * swathe_length))[0]
+    plan = SwathePlan.along(scenario.poses, swathe_length, line_spacing, mount, sensor)
+    return [plan.swathe(scenario, w, seed) for w in range(plan.count)]
+
+
+@dataclass(frozen=True)
+class SwathePlan:
+    """Where every line of a push-broom run is fired and which swathe it belongs to.
+
+    Made once from the trajectory (:meth:`along`); :meth:`swathe` then builds
+    any one swathe on its own, so the swathes of ``liris simulate --pushbroom``
+    can be cast in any order, in several processes, with identical results.
+    """
+
+    poses: np.ndarray  # (L, 4, 4) world-from-platform of every line
+    arc: np.ndarray  # (L,) metres travelled at every line
+    swathe_length: float
+    mount: np.ndarray  # (4, 4) platform-from-line-frame
+    sensor: SensorModel
+    directions: np.ndarray  # the sensor's ray directions, computed once
+
+    @staticmethod
+    def along(trajectory: np.ndarray, swathe_length: float, line_spacing: float,
+              mount: PushBroomMount | None = None, sensor: SensorModel = LMS151) -> SwathePlan:
+        """The lines every ``line_spacing`` metres along ``trajectory`` ((n, 4, 4))."""
+        if not swathe_length > 0:
+            raise LirisError("swathe_length", f"must be positive, got {swathe_length}")
+        m = (mount or PushBroomMount()).transform()
+        poses, s = line_poses(trajectory, line_spacing)
+        return SwathePlan(poses, s, float(swathe_length), m, sensor, sensor.grid.directions)
+
+    @property
+    def count(self) -> int:
+        """Complete swathes along the trajectory (a last, shorter stretch is dropped)."""
+        return int(self.arc[-1] // self.swathe_length)
+
+    def swathe(self, scenario, w: int, seed: int | None) -> Swathe:
+        """Swathe ``w``: its lines, each with noise from its own stream ``[seed, w, line]``
+        (``seed`` None: noise-free), so a swathe depends on nothing cast before it."""
+        s, poses, sensor = self.arc, self.poses, self.sensor
+        length = self.swathe_length
+        lines = np.nonzero((s >= w * length) & (s < (w + 1) * length))[0]
         ref = poses[lines[-1]]
         to_ref = np.linalg.inv(ref)
         pts, lab, inten, rows, line_of = [], [], [], [], []
         for li in lines:
             rng = None if seed is None else np.random.default_rng([seed, w, int(li)])
-            pose = poses[li] @ m
+            pose = poses[li] @ self.mount
             near = scenario.world.near_rows(pose[:2, 3], sensor.max_range)
             scan = simulate_scan(sensor, scenario.world.ground, scenario.world.prims.take(near),
-                                 pose, rng, dirs)
+                                 pose, rng, self.directions)
             rel = to_ref @ pose
             pts.append(scan.points.astype(np.float64) @ rel[:3, :3].T + rel[:3, 3])
             lab.append(scan.label)
             inten.append(scan.intensity)
             rows.append(np.where(scan.row >= 0, near[np.maximum(scan.row, 0)], -1))
             line_of.append(np.full(len(scan.points), li - lines[0], np.int64))
-        out.append(Swathe(np.concatenate(pts).astype(np.float32), np.concatenate(lab),
-                          np.concatenate(inten), np.concatenate(rows), ref, poses[lines],
-                          np.concatenate(line_of)))
-    return out
+        return Swathe(np.concatenate(pts).astype(np.float32), np.concatenate(lab),
+                      np.concatenate(inten), np.concatenate(rows), ref, poses[lines],
+                      np.concatenate(line_of))
 
 
 #: metres between two lines in ``liris simulate --pushbroom`` (50 Hz at 2.5 m/s)
 LINE_SPACING = 0.05
 
 
-def write_swathes(scen, preset, work, class_names: dict[int, str]):
+def write_swathe(scen, plan: SwathePlan, work: Path, w: int) -> tuple[int, np.ndarray]:
+    """Build swathe ``w`` of ``plan`` and write it as frame ``w`` into ``work``.
+
+    One task of :func:`write_swathes` (run in a worker process with
+    ``--workers``). Returns the swathe's point count and its pose; the points
+    themselves stay in the worker (only the files carry them).
+    """
+    from lidar_iris_eval.simulate.writer import write_scan
+
+    sw = plan.swathe(scen, w, scen.config.seed)
+    objects = np.concatenate([scen.world.objects, np.zeros(1, np.uint32)])  # last: ground
+    ids = objects[np.where(sw.row < 0, len(objects) - 1, sw.row)]
+    write_scan(work, w, sw.points, sw.intensity, sw.label, ids)
+    return len(sw.points), sw.pose
+
+
+def write_swathes(scen, preset, work, class_names: dict[int, str], executor=None,
+                  progress: bool = False):
     """``liris simulate --pushbroom L``: every swathe of ``L`` metres is one frame (KITTI
     layout: points in the platform frame of the swathe's last line, whose pose is the
     frame's; labels and object ids as for scans). Static world only (no moving cars).
-    Returns ``(frames, points, revisit queries, revisit queries on camera poses)`` for the
-    pipeline's :class:`~lidar_iris_eval.simulate.pipeline.SimReport`."""
+
+    ``executor`` (an :mod:`~lidar_iris_eval.executor` executor; default serial) runs
+    :func:`write_swathe` for every swathe, in any order; the poses and the manifest
+    are written here afterwards. Returns ``(frames, points, revisit queries, revisit
+    queries on camera poses)`` for the pipeline's
+    :class:`~lidar_iris_eval.simulate.pipeline.SimReport`."""
     import dataclasses
 
+    from tqdm import tqdm
+
     from lidar_iris_eval import __version__
+    from lidar_iris_eval.executor import SerialExecutor
     from lidar_iris_eval.simulate.presets import manifest_config
     from lidar_iris_eval.simulate.revisits import revisit_queries
-    from lidar_iris_eval.simulate.writer import write_metadata, write_scan
+    from lidar_iris_eval.simulate.writer import write_metadata
 
     cfg = scen.config
-    found = swathes(scen, float(cfg.pushbroom), LINE_SPACING, seed=cfg.seed)
-    if len(found) < 2:
+    plan = SwathePlan.along(scen.poses, float(cfg.pushbroom), LINE_SPACING)
+    n = plan.count
+    if n < 2:
         raise LirisError("--pushbroom", f"the route of {len(scen.poses)} frames gives "
-                                        f"{len(found)} swathe(s) of {cfg.pushbroom:g} m; "
+                                        f"{n} swathe(s) of {cfg.pushbroom:g} m; "
                                         "give more --frames or a shorter swathe")
-    objects = np.concatenate([scen.world.objects, np.zeros(1, np.uint32)])
+    executor = SerialExecutor() if executor is None else executor
     total = 0
-    for i, sw in enumerate(found):
-        ids = objects[np.where(sw.row < 0, len(objects) - 1, sw.row)]
-        write_scan(work, i, sw.points, sw.intensity, sw.label, ids)
-        total += len(sw.points)
-    poses = np.stack([sw.pose for sw in found])
+    poses = np.empty((n, 4, 4))
+    with tqdm(total=n, desc="simulate", unit="swathe", disable=not progress,
+              leave=False) as bar:
+        for w, (points, pose) in executor.imap(write_swathe, [(w,) for w in range(n)],
+                                               shared=(scen, plan, work)):
+            total += points
+            poses[w] = pose
+            bar.update(1)
     revisits = revisit_queries(poses[:, :3, 3], exclude=1, radius=float(cfg.pushbroom) / 2)
     camera = scen.tr @ poses @ np.linalg.inv(scen.tr)
     revisits_camera = revisit_queries(camera[:, :3, 3], exclude=1,
@@ -174,10 +233,10 @@ def write_swathes(scen, preset, work, class_names: dict[int, str]):
                       "mount": dataclasses.asdict(PushBroomMount()),
                       "frame": "each frame is one swathe, in the platform frame of its last "
                                "line; its pose is that line's platform pose"},
-        "frames": len(found), "points": total,
+        "frames": n, "points": total,
         "revisit_queries_E1_half_swathe": int(len(revisits)),
         "classes": {str(k): v for k, v in class_names.items()},
         "frame_convention": "poses.txt: camera frame, T_cam = Tr T_lidar inv(Tr), frame 0 = I",
     }
     write_metadata(work, poses, scen.tr, manifest)
-    return len(found), total, int(len(revisits)), int(len(revisits_camera))
+    return n, total, int(len(revisits)), int(len(revisits_camera))

@@ -115,18 +115,22 @@ def session_seasons(cfg: SimConfig, sessions: int, seasons: tuple[str, ...]) -> 
 def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
                  sensors: tuple[str, ...] = (), overwrite: bool = False,
                  progress: bool = False, preset: str | None = None,
-                 seasons: tuple[str, ...] = ()) -> SessionsReport:
+                 seasons: tuple[str, ...] = (), workers: int = 1) -> SessionsReport:
     """Simulate ``sessions`` drives of one world into ``OUT/session<k>``.
 
     Session 0 is exactly what :func:`~lidar_iris_eval.simulate.pipeline.run_simulation`
     writes for ``cfg``; ``sessions.json`` lists every session, its sensor and
     the shared pose frame, and how many of its scans lie within 4 m (3-D,
-    camera-frame poses) of a session-0 scan.
+    camera-frame poses) of a session-0 scan. ``workers`` processes cast and
+    write each session's frames (byte-identical files for every count; the
+    sessions themselves run one after the other).
     """
+    from lidar_iris_eval.executor import local_executor
     from lidar_iris_eval.simulate.pipeline import build_scenario, with_frames, write_scenario
 
     out_dir = Path(out_dir)
     cfg = with_frames(cfg)
+    executor = local_executor(workers)
     if cfg.pushbroom is not None:
         raise LirisError("--pushbroom", "writes one sequence; not with --sessions")
     names = session_sensors(cfg, sessions, tuple(sensors))
@@ -157,7 +161,7 @@ def run_sessions(out_dir: str | Path, cfg: SimConfig, sessions: int,
             extra["session_changes"] = (f"season ({season_of[k]}), drive, sensor and noise; "
                                         "the same trees, logs, rocks and terrain")
         report = write_scenario(folder, scen, preset, start, progress, k,
-                                None if k == 0 else origin, extra)
+                                None if k == 0 else origin, extra, executor=executor)
         rel = np.linalg.inv(origin) @ scen.poses
         camera.append((scen.tr @ rel @ np.linalg.inv(scen.tr))[:, :3, 3])
         rows.append({"session": k, "dir": folder.name, "sensor": sensor,
