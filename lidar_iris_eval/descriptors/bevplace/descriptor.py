@@ -17,21 +17,14 @@ model; see MODEL_CARD.md. The SHA-256 of the weights enters the cache key.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from lidar_iris_eval.descriptors import checkpoint
-from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.bevplace import bev, network
-from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks, vector_rows
-from lidar_iris_eval.errors import LirisError, warn
-
-RANDOM_INIT = "random-init"
-_METRICS = ("l2sq", "l2", "cosine")
+from lidar_iris_eval.descriptors.learned import RANDOM_INIT, LearnedVectorDescriptor
+from lidar_iris_eval.descriptors.vector_common import finite_xyz
+from lidar_iris_eval.errors import LirisError
 
 
 @dataclass(frozen=True)
@@ -67,7 +60,7 @@ class BEVPlaceParams:
     metric: str = "l2sq"
 
 
-class BEVPlace(Descriptor):
+class BEVPlace(LearnedVectorDescriptor):
     """BEVPlace++: 8192-d learned global descriptor of a BEV image, squared L2, no yaw."""
 
     name = "bevplace"
@@ -75,14 +68,13 @@ class BEVPlace(Descriptor):
     color = "#117733"
     params_type = BEVPlaceParams
     symmetric = True
+    network = network
+    model_name = "BEVPlace++"
 
     def __init__(self, params: BEVPlaceParams | None = None, preset: str = "custom"):
         super().__init__(params, preset)
         p = self.params
         source = f"bevplace preset {preset}"
-        if p.metric not in _METRICS:
-            raise LirisError(source, f"metric must be one of {', '.join(_METRICS)}, "
-                             f"got {p.metric!r}")
         if not (p.voxel_size > 0 and p.bev_range > 0) or bev.image_size(
                 p.bev_range, p.voxel_size) < 9:
             raise LirisError(source, f"bev_range ({p.bev_range}) and voxel_size "
@@ -91,60 +83,6 @@ class BEVPlace(Descriptor):
         if int(p.rotations) < 1 or int(p.count_cap) < 1:
             raise LirisError(source, f"rotations ({p.rotations}) and count_cap "
                              f"({p.count_cap}) must be at least 1")
-        self._weights: dict | None = None
-        self._digest: str | None = None
-        self._kernel = functools.partial(vector_rows, metric=p.metric)
-
-    def __getstate__(self) -> dict:
-        """Picklable (worker processes) without the weights: reloaded on use."""
-        state = dict(self.__dict__)
-        state["_weights"] = None
-        return state
-
-    # ------------------------------------------------------------------ weights
-
-    @property
-    def trained(self) -> bool:
-        """False for the shipped random weights."""
-        return self.params.weights != RANDOM_INIT
-
-    def _error(self, problem: str) -> LirisError:
-        return LirisError(f"bevplace.weights={self.params.weights}", problem)
-
-    def weights(self) -> dict[str, np.ndarray]:
-        """The network's float32 weights by name (loaded once)."""
-        if self._weights is None:
-            if not self.trained:
-                warn("bevplace.weights=random-init",
-                     "deterministic random weights, NOT a trained model (scores are not "
-                     "BEVPlace++'s); give a checkpoint with --param bevplace.weights=PATH")
-                w = network.random_weights(self.params.seed)
-                self._digest = network.weights_digest(w)
-            else:
-                path = Path(self.params.weights).expanduser()
-                try:
-                    w, self._digest = checkpoint.read_weights_file(path)
-                except OSError as err:
-                    raise self._error(f"cannot read {path} ({err.strerror or err})") from None
-                except checkpoint.CheckpointError as err:
-                    raise self._error(f"{path}: {err}") from None
-            problems = network.check_weights(w)
-            if problems:
-                shown = "; ".join(problems[:3]) + (f" (+{len(problems) - 3} more)"
-                                                   if len(problems) > 3 else "")
-                raise self._error(f"not a BEVPlace++ model: {shown}")
-            self._weights = {k: np.ascontiguousarray(w[k], dtype=np.float32)
-                             for k in network.shapes()}
-        return self._weights
-
-    def cache_token(self) -> str:
-        """SHA-256 (16 hex) of the weights: the file's bytes, or the random arrays."""
-        self.weights()
-        return str(self._digest)[:16]
-
-    def run_info(self) -> dict[str, Any]:
-        return {"weights": Path(self.params.weights).name if self.trained else RANDOM_INIT,
-                "weights_sha256": self.cache_token(), "weights_trained": self.trained}
 
     # ------------------------------------------------------------------ describe
 
@@ -162,15 +100,3 @@ class BEVPlace(Descriptor):
         """``(B, 8192)`` descriptors of ``(B, S, S)`` 8-bit BEV images (one batch)."""
         return network.forward(self.weights(), bev.network_input(images),
                                int(self.params.rotations))
-
-    # ------------------------------------------------------------------ distances
-
-    def distance(self, query: np.ndarray, candidate: np.ndarray) -> tuple[float, float]:
-        return float(self._kernel(query, np.asarray(candidate)[None, :])[0]), float("nan")
-
-    def distances(self, query: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d = self._kernel(query, database).reshape(len(database))
-        return d, np.full(len(database), np.nan)
-
-    def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return pairwise_blocks(self._kernel, queries, database)

@@ -37,7 +37,6 @@ Weights are a dict of float32 arrays under the authors' ``state_dict`` names
 from __future__ import annotations
 
 import functools
-import hashlib
 
 import numpy as np
 from scipy import sparse
@@ -101,27 +100,6 @@ def random_weights(seed: int = 0) -> dict[str, np.ndarray]:
     return w
 
 
-def weights_digest(weights: dict[str, np.ndarray]) -> str:
-    """SHA-256 of the weights the forward pass reads (names, shapes, bytes)."""
-    h = hashlib.sha256()
-    for name in sorted(shapes()):
-        arr = np.ascontiguousarray(weights[name], dtype=np.float32)
-        h.update(name.encode())
-        h.update(str(arr.shape).encode())
-        h.update(arr.tobytes())
-    return h.hexdigest()
-
-
-def check_weights(weights: dict[str, np.ndarray]) -> list[str]:
-    """Problems that stop the forward pass (missing names, wrong shapes); empty if none."""
-    problems = []
-    for name, shape in shapes().items():
-        if name not in weights:
-            problems.append(f"no tensor {name!r}")
-        elif tuple(np.shape(weights[name])) != shape:
-            problems.append(f"{name!r} has shape {tuple(np.shape(weights[name]))}, "
-                            f"expected {shape}")
-    return problems
 
 
 # ------------------------------------------------------------------ sampling
