@@ -326,6 +326,24 @@ def local_executor(workers: int = 1) -> SerialExecutor:
     return SerialExecutor() if workers == 1 else ProcessExecutor(workers=workers)
 
 
+def _put_back(saved: dict[str, str | None]) -> None:
+    """Restore ``os.environ`` values saved as ``{name: value or None}``.
+
+    distributed's nanny applies ``pre-spawn-environ`` to ``os.environ`` of the
+    process that starts the cluster (this one) and leaves it there: during and
+    after a ``--scheduler local`` run this process had ``NUMBA_NUM_THREADS=1``,
+    numba's first parallel kernel here started one thread, and numba then
+    refused every later compilation ("Cannot set NUMBA_NUM_THREADS to a
+    different value once the threads have been launched") once the value
+    changed back. The workers got their values when they were spawned.
+    """
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+
+
 @contextlib.contextmanager
 def open_executor(scheduler: str | None = "processes", workers: int = 1
                   ) -> Iterator[SerialExecutor | DaskExecutor]:
@@ -344,6 +362,8 @@ def open_executor(scheduler: str | None = "processes", workers: int = 1
 
     with contextlib.ExitStack() as stack:
         if scheduler == "local":
+            saved = {name: os.environ.get(name) for name in ONE_THREAD_ENV}
+            stack.callback(_put_back, saved)  # again on leaving: a nanny may respawn a worker
             stack.enter_context(dask.config.set(
                 {"distributed.nanny.pre-spawn-environ": dict(ONE_THREAD_ENV),
                  "distributed.worker.daemon": False}))
@@ -351,6 +371,7 @@ def open_executor(scheduler: str | None = "processes", workers: int = 1
                 n_workers=max(1, workers), threads_per_worker=1, processes=True,
                 dashboard_address=None, silence_logs=logging.ERROR))
             client = stack.enter_context(distributed.Client(cluster))
+            _put_back(saved)
         else:
             try:
                 client = stack.enter_context(distributed.Client(scheduler, timeout="20s"))

@@ -179,6 +179,25 @@ def test_a_liris_error_crosses_dask_as_itself():
     assert info.value.problem.startswith("choose processes, local or")
 
 
+def test_a_local_cluster_leaves_this_process_environment_alone(monkeypatch):
+    """The workers get one numba/BLAS thread; this process keeps its own values, during
+    the run and after it (distributed's nanny wrote them into os.environ, and numba then
+    refused to compile once the value changed back)."""
+    pytest.importorskip("distributed")
+    import os
+
+    from lidar_iris_eval.executor import ONE_THREAD_ENV
+
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    mine = {name: os.environ.get(name) for name in ONE_THREAD_ENV}
+    with open_executor("local", 1) as ex:
+        assert {name: os.environ.get(name) for name in ONE_THREAD_ENV} == mine
+        seen = list(ex.client.run(lambda: os.environ.get("NUMBA_NUM_THREADS")).values())
+        assert seen == ["1"]
+    assert {name: os.environ.get(name) for name in ONE_THREAD_ENV} == mine
+
+
 @pytest.mark.parametrize("engine", [["--workers", "2"], ["--scheduler", "local", "--workers", "1"]])
 def test_a_bad_scan_in_a_worker_is_one_line_exit_2(tmp_path, capsys, monkeypatch, engine):
     from conftest import run_cli
