@@ -94,6 +94,8 @@ def test_every_mode_takes_the_request_alone():
     (run_many, {"sequences": (Path("a"), Path("b")), "as_json": True},
      "--export-loops/--json"),
     (run_many, {"sequences": (Path("a"),), "plan": Path("p.yaml")}, "--plan"),
+    (run_many, {"sequences": (Path("a"), Path("b")), "pairs_text": "ssc"}, "--pairs/--ranking"),
+    (run_many, {"sequences": (Path("a"), Path("b")), "ranking": True}, "--pairs/--ranking"),
     (run_loops, {"sequences": (Path("a"), Path("b")), "loop_paths": (Path("l.g2o"),)},
      "--loops"),
     (run_loops, {"loop_paths": (Path("l.g2o"),), "protocols": ("2",)}, "--protocol"),

@@ -45,6 +45,8 @@ def run_many(req: EvalRequest) -> Path:
         raise LirisError("SEQUENCE", "give a sequence, several, or --plan FILE")
     if req.export_path is not None or req.as_json:
         raise LirisError("--export-loops/--json", "apply to a single sequence only")
+    if req.pairs_text is not None or req.ranking:  # were ignored without a word
+        raise LirisError("--pairs/--ranking", "apply to a single sequence only")
     runs = (read_plan(req.plan, req.descriptor_text, req.protocols) if req.plan is not None
             else runs_from_sequences(req.sequences, req.descriptor_text, req.protocols))
     return evaluate_many(runs, req)
