@@ -45,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table1 import liris, method_groups  # noqa: E402 - the sibling script's runner
 
 from lidar_iris_eval.atomic import atomic_write  # noqa: E402
-from lidar_iris_eval.errors import LirisError  # noqa: E402
+from lidar_iris_eval.cli import run_guarded  # noqa: E402
 from lidar_iris_eval.ownership import check_new_files  # noqa: E402
 from lidar_iris_eval.runs.writer import check_run_dir  # noqa: E402
 from lidar_iris_eval.simulate.writer import check_out_dir  # noqa: E402
@@ -209,12 +209,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace earlier tables, runs and sessions (only those liris wrote)")
     a = p.parse_args(argv)
-    try:
-        rows = cross_season(a.out, a.world, a.methods.split(","), a.frames, a.azimuth_steps,
-                            a.cache_dir, a.workers, a.overwrite)
-    except LirisError as err:
-        print(f"liris: error: {' '.join(str(err).split())}", file=sys.stderr)
-        sys.exit(2)
+    rows = run_guarded(lambda: cross_season(a.out, a.world, a.methods.split(","), a.frames,
+                                            a.azimuth_steps, a.cache_dir, a.workers,
+                                            a.overwrite))
     print(markdown(rows))
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import click
 
+from lidar_iris_eval.cli import run_guarded
 from lidar_iris_eval.cli.sequence_options import pose_file_options, sequence_options
 from lidar_iris_eval.errors import LirisError
 
@@ -84,14 +85,8 @@ def command(sequence, reader_options, out, overwrite, preset, exclude, every_map
 
 def main(argv=None) -> None:
     """Run :func:`command`; a bad input is one ``liris: error:`` line and exit 2."""
-    try:
-        command.main(args=argv, prog_name="esm_segments.py", standalone_mode=False)
-    except click.ClickException as err:
-        click.echo(f"liris: error: {err.format_message()}", err=True)
-        sys.exit(2)
-    except LirisError as err:
-        click.echo(f"liris: error: {' '.join(str(err).split())}", err=True)
-        sys.exit(2)
+    run_guarded(lambda: command.main(args=argv, prog_name="esm_segments.py",
+                                     standalone_mode=False))
 
 
 if __name__ == "__main__":

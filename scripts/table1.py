@@ -52,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_iris_eval.atomic import atomic_write
+from lidar_iris_eval.cli import run_guarded
 from lidar_iris_eval.errors import LirisError
 from lidar_iris_eval.ownership import check_new_files
 from lidar_iris_eval.runs.writer import check_run_dir
@@ -277,12 +278,9 @@ def main(argv=None) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace earlier tables, runs and sequences (only those liris wrote)")
     a = p.parse_args(argv)
-    try:
-        rows = table1(a.out, a.worlds.split(","), a.methods.split(","), a.frames,
-                      a.azimuth_steps, a.cache_dir, a.workers, a.figure, a.overwrite)
-    except LirisError as err:
-        print(f"liris: error: {' '.join(str(err).split())}", file=sys.stderr)
-        sys.exit(2)
+    rows = run_guarded(lambda: table1(a.out, a.worlds.split(","), a.methods.split(","),
+                                      a.frames, a.azimuth_steps, a.cache_dir, a.workers,
+                                      a.figure, a.overwrite))
     print(markdown(rows))
 
 

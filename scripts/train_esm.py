@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -319,10 +318,6 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    from lidar_iris_eval.errors import LirisError
+    from lidar_iris_eval.cli import run_guarded
 
-    try:
-        main()
-    except LirisError as err:
-        print(f"liris: error: {' '.join(str(err).split())}", file=sys.stderr)
-        sys.exit(2)
+    run_guarded(main)

@@ -14,6 +14,8 @@ import signal
 import sys
 import threading
 import warnings
+from collections.abc import Callable
+from typing import TypeVar
 
 # Our kernels are numba-threaded or sized for one BLAS thread. OpenBLAS's own
 # threads spin while waiting and, on a busy 2-core laptop, made Scan Context's
@@ -30,6 +32,8 @@ from lidar_iris_eval.errors import LirisError, LirisWarning, os_error, register_
 EXIT_BAD_INPUT = 2
 #: exit code of a run stopped by Ctrl-C (128 + SIGINT), as shells report it
 EXIT_INTERRUPTED = 130
+
+T = TypeVar("T")
 
 
 def _interrupted_during_startup(signum, frame):  # pragma: no cover - timing dependent
@@ -220,9 +224,29 @@ def main(argv: list[str] | None = None) -> None:
     prints ``liris: interrupted`` and exits 130, whatever was running. Every
     such line starts on a line of its own, after any progress bar.
     """
+    run_guarded(lambda: cli.main(args=argv, prog_name="liris", standalone_mode=False))
+
+
+def run_guarded(body: Callable[[], T]) -> T:
+    """Run ``body`` and end it the way every ``liris`` command ends.
+
+    The one place that words an ending: the CLI's entry point and the
+    maintainer scripts (``scripts/*.py``, which parse with argparse or their
+    own click command) both go through it, so a bad input there is the same
+    single ``liris: error:`` line with exit code 2, an ``OSError`` names its
+    path, and Ctrl-C is ``liris: interrupted`` with exit 130.
+
+    Parameters
+    ----------
+    body : the work, called with no arguments.
+
+    Returns
+    -------
+    What ``body`` returns when it ends normally.
+    """
     with tracked_stderr(), _Interrupts() as interrupts:
         try:
-            cli.main(args=argv, prog_name="liris", standalone_mode=False)
+            return body()
         except SystemExit:
             if interrupts.seen:
                 _interrupted()
@@ -231,6 +255,7 @@ def main(argv: list[str] | None = None) -> None:
             if interrupts.seen or _caused_by_interrupt(err):
                 _interrupted()
             _handle(err)
+            raise  # pragma: no cover - _handle exits or re-raises
 
 
 def _handle(err: BaseException) -> None:
