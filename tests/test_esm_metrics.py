@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lidar_iris_eval.descriptors.esm.dataset import SegmentSet, true_pairs
-from lidar_iris_eval.descriptors.esm.metrics import retrieval_metrics, roc_auc
+from lidar_iris_eval.descriptors.esm.metrics import quality_examples, retrieval_metrics, roc_auc
 
 
 def test_auc_by_hand():
@@ -58,3 +58,21 @@ def test_same_object_non_pairs_can_be_ignored():
     # both farther than the positive, and both queries hit at k=1
     assert loose["negatives"] == 2 and loose["auc"] == 1.0
     assert loose["accuracy_at_k"][1] == 1.0
+
+
+def test_quality_examples_leave_out_segments_never_seen_again():
+    # six segments on a line of embeddings; true pairs (0, 3) and (1, 4); 2 and 5 have none
+    emb = np.array([[0.0, 0], [5, 0], [12, 0], [0.1, 0], [7.5, 0], [20, 0]])
+    frame = np.array([0, 0, 0, 40, 40, 40])
+    world = np.zeros(6, np.int64)
+    pairs = np.array([[0, 3], [1, 4]])
+    rows, labels = quality_examples(emb, frame, world, pairs, k=1, gap=30)
+    assert rows.tolist() == [0, 1, 3, 4]  # 2 and 5 can never be labelled 1: not examples
+    # nearest at >= 30 frames: 0 -> 3 (true), 1 -> 4 (2.5 against 3.0 to 3: true),
+    # 3 -> 0 (true), 4 -> 1 (2.5; 2 is 4.5 and 0 is 7.5 away; 3 and 5 share its frame)
+    assert labels.tolist() == [1, 1, 1, 1]
+    rows, labels = quality_examples(emb, frame, world, np.array([[0, 4], [1, 3]]), k=1, gap=30)
+    assert rows.tolist() == [0, 1, 3, 4] and labels.tolist() == [0, 0, 0, 0]
+    # another world's segment is never a candidate, whatever its distance
+    rows, labels = quality_examples(emb, frame, np.array([0, 0, 0, 1, 0, 0]), pairs, k=1, gap=30)
+    assert rows.tolist() == [0, 1, 3, 4] and labels.tolist() == [0, 1, 0, 1]

@@ -8,6 +8,9 @@ For held-out segments with known true pairs (:func:`dataset.true_pairs`):
 * **accuracy@k**: among queries that have at least one true partner, the
   fraction whose ``k`` nearest segments (frames within ``min_frame_gap`` of the
   query excluded, as in loop closure) contain one.
+
+:func:`quality_examples` gives the quality branch's training examples (ESM:
+label 1 when a true match is among the segment's k nearest neighbours).
 """
 
 from __future__ import annotations
@@ -117,3 +120,47 @@ def segment_retrieval(w: dict, arch, data, min_frame_gap: int = 10, n: int = 300
                              min_frame_gap=min_frame_gap, world=data.world_id[rows],
                              coarse=data.coarse[rows],
                              ignore=key if ignore_same_object else None)
+
+
+def quality_examples(emb: np.ndarray, frame: np.ndarray, world: np.ndarray, pairs: np.ndarray,
+                     k: int = 25, gap: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """The quality branch's examples: ``(rows, labels)`` of the segments that can be matched.
+
+    ESM's quality is "a true match is among the segment's ``k`` nearest
+    neighbours" (frames ``>= gap`` apart, same world). A segment with no true
+    partner in the sample can never be labelled 1, whatever its shape: it was
+    simply not seen again (common on a one-way drive such as the Riverside
+    keyframes, where 93 % of the segments have none). Counting it as a 0 teaches
+    the branch which data sets have revisits, not which segments are distinctive,
+    so only segments with a partner are examples (``rows``, indices into
+    ``emb``); ``labels`` is 1 where a partner is among the ``k`` nearest.
+
+    Parameters
+    ----------
+    emb : (n, D) array
+        Embeddings of the sampled segments.
+    frame, world : (n,) int arrays
+        Their frames and world (sequence) ids.
+    pairs : (m, 2) int array
+        True pairs as indices into ``emb``.
+    k, gap : int
+        Neighbours searched, and the least frame distance of a candidate.
+    """
+    emb = np.asarray(emb, np.float64)
+    n = len(emb)
+    partner = [set() for _ in range(n)]
+    for a, b in np.asarray(pairs, np.int64).reshape(-1, 2):
+        partner[int(a)].add(int(b))
+        partner[int(b)].add(int(a))
+    rows = np.array([i for i in range(n) if partner[i]], np.int64)
+    if len(rows) == 0:
+        return rows, np.zeros(0, np.int64)
+    sq = (emb**2).sum(1)
+    d2 = sq[rows, None] + sq[None, :] - 2.0 * emb[rows] @ emb.T
+    bad = (np.abs(frame[rows, None] - frame[None, :]) < gap) | (world[rows, None] != world[None, :])
+    d2[bad] = np.inf
+    kk = min(k, n)
+    near = np.argsort(d2, axis=1, kind="stable")[:, :kk]
+    labels = np.array([any(int(j) in partner[int(i)] and np.isfinite(d2[r, j]) for j in near[r])
+                       for r, i in enumerate(rows)], dtype=np.int64)
+    return rows, labels

@@ -20,8 +20,11 @@
   best checkpoint is kept; the reported validation world is never used for a
   choice.
 * **Quality branch**: afterwards, on the frozen embeddings of the training
-  segments, FC(2) + softmax with cross-entropy; label 1 when a true partner is
-  among the segment's 25 nearest neighbours (frames >= 10 apart).
+  segments that have a true partner in the sample
+  (:func:`~lidar_iris_eval.descriptors.esm.metrics.quality_examples`: a segment
+  never seen again says nothing about distinctiveness), FC(2) + softmax with
+  cross-entropy; label 1 when a true partner is among the segment's 25 nearest
+  neighbours (frames >= the minimum frame gap apart).
 """
 
 from __future__ import annotations
@@ -40,7 +43,11 @@ from lidar_iris_eval.descriptors.esm.dataset import (
     negative_candidates,
     true_pairs,
 )
-from lidar_iris_eval.descriptors.esm.metrics import retrieval_metrics, segment_retrieval
+from lidar_iris_eval.descriptors.esm.metrics import (
+    quality_examples,
+    retrieval_metrics,
+    segment_retrieval,
+)
 from lidar_iris_eval.descriptors.esm.segmentation import normalise, resample
 from lidar_iris_eval.descriptors.esm.torch_net import ESMNet
 
@@ -116,20 +123,6 @@ class PairSampler:
         flip = rng.random(len(ab)) < 0.5
         ab[flip] = ab[flip][:, ::-1]
         return ab
-
-
-def knn_labels(emb: np.ndarray, data: SegmentSet, rows: np.ndarray, pairs: np.ndarray,
-               k: int = 25, gap: int = 10) -> np.ndarray:
-    """1 where a true partner is among the k nearest (frames >= gap apart), else 0."""
-    pos = {(int(a), int(b)) for a, b in pairs} | {(int(b), int(a)) for a, b in pairs}
-    sq = (emb**2).sum(1)
-    d2 = sq[:, None] + sq[None, :] - 2 * emb @ emb.T
-    fr, wd = data.frame[rows], data.world_id[rows]
-    bad = (np.abs(fr[:, None] - fr[None, :]) < gap) | (wd[:, None] != wd[None, :])
-    d2[bad] = np.inf
-    order = np.argsort(d2, axis=1)[:, :k]
-    return np.array([any((int(rows[i]), int(rows[j])) in pos for j in order[i])
-                     for i in range(len(rows))], dtype=np.int64)
 
 
 def _score(net: ESMNet, data: SegmentSet, pairs: np.ndarray, rows: np.ndarray,
@@ -341,6 +334,8 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
         _train(net, train, sampler, args, work, select_set, gap, log)
         _save(net.state_dict(), ckpt)
         (work / "train_log.json").write_text(json.dumps(log, indent=2))
+    elif init is not None and not ckpt.exists():
+        log["quality_refit_only"] = True  # --stages quality,export on --init's network
     else:
         net.load_state_dict(torch.load(ckpt))
         if (work / "train_log.json").exists():
@@ -352,15 +347,19 @@ def run(train: SegmentSet, valid_set, args, stages: set, start: float,
         net.quality.bias.requires_grad_(True)
         rows = np.sort(rng.choice(len(train), min(len(train), 4000), replace=False))
         emb = embed_eval(net, train, rows)
-        sub_pairs = pairs[np.isin(pairs[:, 0], rows) & np.isin(pairs[:, 1], rows)]
-        y = knn_labels(emb, train, rows, sub_pairs, gap=gap)
+        remap = -np.ones(len(train), np.int64)
+        remap[rows] = np.arange(len(rows))
+        sub = remap[pairs]
+        sub = sub[(sub >= 0).all(axis=1)]
+        used, y = quality_examples(emb, train.frame[rows], train.world_id[rows], sub, gap=gap)
         opt = torch.optim.Adam([net.quality.weight, net.quality.bias], lr=1e-2)
-        x_t, y_t = torch.from_numpy(emb), torch.from_numpy(y)
+        x_t, y_t = torch.from_numpy(emb[used]), torch.from_numpy(y)
         for _ in range(args.quality_steps):
             loss = torch.nn.functional.cross_entropy(net.quality_logits(x_t), y_t)
             opt.zero_grad()
             loss.backward()
             opt.step()
+        log["quality_examples"] = int(len(used))
         log["quality_positive_rate"] = float(y.mean())
         log["quality_loss"] = float(loss.item())
         _save(net.state_dict(), ckpt)
