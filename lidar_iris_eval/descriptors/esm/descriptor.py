@@ -53,6 +53,7 @@ from lidar_iris_eval.descriptors.esm import network, segmatch
 from lidar_iris_eval.descriptors.esm.local_segments import local_map_clusters, sample_segment
 from lidar_iris_eval.descriptors.esm.segmentation import SegmentParams, segment_scan
 from lidar_iris_eval.descriptors.esm.target_map import (
+    GROW_RULES,
     TARGET_VIEWS,
     Localisation,
     localise,
@@ -100,6 +101,7 @@ class ESMParams:
     target_view: str = "latest"  # which recent view of a segment the target keeps (target_map.py)
     consistency: float = 0.6  # centroid-consistency / inlier threshold (m)
     min_consistent: int = 6  # SegMap's minimum cluster size on accumulated maps
+    grow: str = "order"  # a seed's consistent set: next member by PROSAC "order" or "degree"
     min_target: int = 50  # SegMap matches only once the target holds this many segments
     frame_rule: str = "estimate"  # matched frame: "estimate" or SegMap's "segments"
     max_offset: float = 4.0  # "estimate": reject when the nearest frame is farther (m)
@@ -116,7 +118,8 @@ class ESMParams:
     def __post_init__(self) -> None:
         for name, choices in (("source", _SOURCES), ("target_view", TARGET_VIEWS),
                               ("segment_descriptor", _SEGMENT_DESCRIPTORS),
-                              ("describe", DESCRIBE_RULES), ("ground", _GROUND)):
+                              ("describe", DESCRIBE_RULES), ("ground", _GROUND),
+                              ("grow", GROW_RULES)):
             value = getattr(self, name)
             if value not in choices:
                 raise LirisError(f"esm.{name}", f"must be one of {', '.join(choices)}, "
@@ -436,7 +439,8 @@ class ESM(Descriptor):
                                db.embedding[t], db.quality[t], db.world[t], t,
                                db.poses[:n, :3, 3], knn=p.knn, threshold=p.consistency,
                                min_consistent=p.min_consistent, iterations=p.iterations,
-                               frame_rule=p.frame_rule, max_offset=p.max_offset)
+                               frame_rule=p.frame_rule, max_offset=p.max_offset,
+                               grow=p.grow)
         db.cache.clear()
         db.cache[key] = loc
         return loc

@@ -63,6 +63,8 @@ from lidar_iris_eval.matching.geometry import kabsch
 
 #: which recent view of a segment the target map keeps (module docstring)
 TARGET_VIEWS = ("latest", "largest")
+#: how a seed's consistent set grows (:func:`_consistent_sets`)
+GROW_RULES = ("order", "degree")
 
 
 def target_lifetimes(world: np.ndarray, frame_of: np.ndarray, n_frames: int, dedup: float,
@@ -134,7 +136,8 @@ def _rejected(hyp: int = 0, inliers: int = 0, seconds=(0.0, 0.0)) -> Localisatio
 
 def localise(q_emb, q_qual, q_cent, t_emb, t_qual, t_world, t_ids, positions, *, knn: int,
              threshold: float, min_consistent: int, iterations: int,
-             frame_rule: str = "estimate", max_offset: float = 4.0) -> Localisation:
+             frame_rule: str = "estimate", max_offset: float = 4.0,
+             grow: str = "order") -> Localisation:
     """Match query segments against target segments (module docstring).
 
     ``q_cent`` are query centroids in the query's LiDAR frame, ``t_world``
@@ -159,7 +162,7 @@ def localise(q_emb, q_qual, q_cent, t_emb, t_qual, t_world, t_ids, positions, *,
     src, dst = t_world[tb], q_cent[qa]
     n = len(qa)
     tried = max(0, min(iterations, n))
-    sets = _consistent_sets(qa, tb, t_world, q_cent, threshold, min_consistent, tried)
+    sets = _consistent_sets(qa, tb, t_world, q_cent, threshold, min_consistent, tried, grow)
     t1 = time.thread_time()
     best = None
     for seed, m in sets:
@@ -210,8 +213,13 @@ def _centroid_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _consistent_sets(qa: np.ndarray, tb: np.ndarray, t_world: np.ndarray, q_cent: np.ndarray,
-                     threshold: float, min_consistent: int, seeds: int) -> list:
+                     threshold: float, min_consistent: int, seeds: int,
+                     grow: str = "order") -> list:
     """The greedy consistent set grown from each of the first ``seeds`` correspondences.
+
+    ``grow`` (:data:`GROW_RULES`) picks the next member among those still allowed:
+    ``order`` the first in PROSAC order (:func:`_grow`), ``degree`` the one
+    consistent with most of the others still allowed (:func:`_grow_degree`).
 
     Returns ``(seed, members)`` for the seeds whose set reaches
     ``min_consistent``, members in the order they joined (the seed first).
@@ -246,7 +254,10 @@ def _consistent_sets(qa: np.ndarray, tb: np.ndarray, t_world: np.ndarray, q_cent
             allowed = np.flatnonzero(ok[i])
             if len(allowed) + 1 < min_consistent:
                 continue
-            members = _grow(seed, allowed, src, dq, qa, tb, limit)
+            if grow == "degree":
+                members = _grow_degree(seed, allowed, src, dq, qa, tb, limit)
+            else:
+                members = _grow(seed, allowed, src, dq, qa, tb, limit)
             if len(members) >= min_consistent:
                 out.append((seed, members))
     return out
@@ -287,6 +298,64 @@ def _grow(seed: int, allowed: np.ndarray, src: np.ndarray, dq: np.ndarray, qa: n
                 rest[w] = x
                 w += 1
         n = w
+    return members[:m]
+
+
+@numba.njit(cache=True)
+def _grow_degree(seed: int, allowed: np.ndarray, src: np.ndarray, dq: np.ndarray,
+                 qa: np.ndarray, tb: np.ndarray, limit: float) -> np.ndarray:  # pragma: no cover
+    """One seed's greedy set, most-consistent candidate first (compiled).
+
+    The consistency among the ``allowed`` correspondences (those consistent
+    with the seed) is formed once, with :func:`_grow`'s float32 arithmetic;
+    then, while any is left, the candidate consistent with most of the others
+    still left joins (ties: the earlier in PROSAC order) and the rest is cut to
+    its consistent ones. The classic greedy approximation of a maximum clique
+    (SegMap's incremental recogniser searches maximum cliques of this graph):
+    a wrong correspondence that happens to come early in the quality order is
+    consistent with few others and no longer blocks the true ones.
+    """
+    n = len(allowed)
+    ok = np.zeros((n, n), np.bool_)
+    for a in range(n):
+        ca = allowed[a]
+        for b in range(a + 1, n):
+            cb = allowed[b]
+            if qa[ca] == qa[cb] or tb[ca] == tb[cb]:
+                continue
+            d0 = np.float32(src[ca, 0] - src[cb, 0])
+            d1 = np.float32(src[ca, 1] - src[cb, 1])
+            d2 = np.float32(src[ca, 2] - src[cb, 2])
+            dist = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+            if np.float64(abs(dist - dq[qa[ca], qa[cb]])) <= limit:
+                ok[a, b] = True
+                ok[b, a] = True
+    alive = np.ones(n, np.bool_)
+    degree = np.zeros(n, np.int64)
+    for a in range(n):
+        for b in range(n):
+            if ok[a, b]:
+                degree[a] += 1
+    members = np.empty(n + 1, np.int64)
+    members[0] = seed
+    m = 1
+    left = n
+    while left:
+        best = -1
+        for a in range(n):
+            if alive[a] and (best < 0 or degree[a] > degree[best]):
+                best = a
+        members[m] = allowed[best]
+        m += 1
+        alive[best] = False
+        left -= 1
+        for r in range(n):  # cut the rest to best's consistent ones
+            if alive[r] and not ok[best, r]:
+                alive[r] = False
+                left -= 1
+                for b in range(n):
+                    if ok[r, b]:
+                        degree[b] -= 1
     return members[:m]
 
 
