@@ -1,9 +1,10 @@
-"""The ESM weights fine-tuned on simulated + Riverside segments: reachable by name, not the default.
+"""The ESM weights fine-tuned on simulated + Riverside segments: reachable by name, not a preset's.
 
 ``esm_localmap_real_weights.npz`` (model card, "esm_localmap_real_weights.npz") is opt-in
-(``--param esm.weights=esm_localmap_real_weights.npz``); the presets keep their weights so every
-pinned figure stays valid. On real KITTI segments the file must give a usable embedding that
-differs from the weights it was fine-tuned from (else the training did nothing).
+(``--param esm.weights=esm_localmap_real_weights.npz``); the `local-maps` preset uses its
+network with a refit quality branch (``esm_localmap_simreal_weights.npz``,
+tests/test_esm_simreal_weights.py). On real KITTI segments the file must give a usable
+embedding that differs from the weights it was fine-tuned from (else the training did nothing).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def test_real_kitti_segments_get_a_valid_but_different_embedding(kitti_dir):
         pytest.skip("KITTI sample scan missing")
     points = np.fromfile(scan, np.float32).reshape(-1, 4)[:, :3]
     new = get_descriptor("esm", "local-maps", weights=NAME)
-    old = get_descriptor("esm", "local-maps")
+    old = get_descriptor("esm", "local-maps", weights=network.LOCALMAP_WEIGHTS_FILE.name)
     assert new.segment_params == old.segment_params  # same resampling and normalisation
     segs = segment_scan(points, None, new.segment_params)
     assert len(segs.points) >= 10, "the KITTI scan should give many segments"
