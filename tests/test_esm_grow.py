@@ -1,49 +1,22 @@
 """ESM's consistent sets grown most-consistent-first (``esm.grow=degree``).
 
 A seed's set grows by the candidate consistent with most of the others still
-allowed instead of the first in PROSAC order. Checked against a dense NumPy
-oracle on random scenes (the same members in the same order), for the clique
-property, and on a hand-built scene where one wrong correspondence early in
-the order blocks the first-in-order rule but not this one.
+allowed instead of the first in PROSAC order. Checked against the dense NumPy
+oracle of tests/test_esm_localise.py (``reference_sets(..., "degree")``: the
+same members in the same order) on random scenes, for the clique property, and
+on a hand-built scene where one wrong correspondence early in the order blocks
+the first-in-order rule but not this one.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_esm_localise import dense_consistency, reference_sets
 
 from lidar_iris_eval.descriptors.esm.descriptor import ESMParams
 from lidar_iris_eval.descriptors.esm.target_map import _consistent_sets
 from lidar_iris_eval.errors import LirisError
-
-
-def _dense_ok(qa, tb, t_world, q_cent, threshold):
-    src, dst = t_world[tb], q_cent[qa]
-    ds = np.linalg.norm((src[:, None] - src[None]).astype(np.float32), axis=2)
-    dd = np.linalg.norm((dst[:, None] - dst[None]).astype(np.float32), axis=2)
-    ok = np.abs(ds - dd) <= threshold
-    ok &= qa[:, None] != qa[None, :]
-    ok &= tb[:, None] != tb[None, :]
-    return ok
-
-
-def reference_degree_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds) -> list:
-    """The oracle: the whole consistency matrix, degrees recounted at every step."""
-    ok = _dense_ok(qa, tb, t_world, q_cent, threshold)
-    out = []
-    for seed in range(seeds):
-        alive = np.flatnonzero(ok[seed])
-        if len(alive) + 1 < min_consistent:
-            continue
-        members = [seed]
-        while len(alive):
-            degree = ok[np.ix_(alive, alive)].sum(1)
-            c = int(alive[int(np.argmax(degree))])  # ties: the earlier in PROSAC order
-            members.append(c)
-            alive = alive[ok[c, alive]]
-        if len(members) >= min_consistent:
-            out.append((seed, np.asarray(members)))
-    return out
 
 
 def _random_scene(seed: int, nq: int = 30, nt: int = 60, k: int = 8):
@@ -66,7 +39,7 @@ def _random_scene(seed: int, nq: int = 30, nt: int = 60, k: int = 8):
 def test_degree_sets_equal_the_dense_oracle(seed):
     qa, tb, t_world, q_cent = _random_scene(seed)
     got = _consistent_sets(qa, tb, t_world, q_cent, 0.6, 4, len(qa), "degree")
-    want = reference_degree_sets(qa, tb, t_world, q_cent, 0.6, 4, len(qa))
+    want = reference_sets(qa, tb, t_world, q_cent, 0.6, 4, len(qa), "degree")
     assert len(want) > 0
     assert [s for s, _ in got] == [s for s, _ in want]
     for (_, a), (_, b) in zip(got, want, strict=True):
@@ -76,7 +49,7 @@ def test_degree_sets_equal_the_dense_oracle(seed):
 @pytest.mark.parametrize("seed", range(4))
 def test_degree_sets_are_cliques_without_repeated_segments(seed):
     qa, tb, t_world, q_cent = _random_scene(100 + seed)
-    ok = _dense_ok(qa, tb, t_world, q_cent, 0.6)
+    ok = dense_consistency(qa, tb, t_world, q_cent, 0.6)
     sets = _consistent_sets(qa, tb, t_world, q_cent, 0.6, 3, len(qa), "degree")
     assert sets
     for _, members in sets:
@@ -101,7 +74,7 @@ def test_an_early_wrong_correspondence_blocks_order_but_not_degree():
     t_world = np.vstack([t_true, wrong])
     qa = np.array([0, 1, 1, 2, 3, 4, 5, 6, 7])
     tb = np.array([0, 8, 1, 2, 3, 4, 5, 6, 7])
-    ok = _dense_ok(qa, tb, t_world, q_cent, 0.6)
+    ok = dense_consistency(qa, tb, t_world, q_cent, 0.6)
     assert ok[0, 1] and ok[1, 2:].sum() <= 1  # the premise: wrong joins the seed, little else
 
     order = _consistent_sets(qa, tb, t_world, q_cent, 0.6, 6, 1, "order")

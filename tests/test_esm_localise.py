@@ -29,25 +29,40 @@ from lidar_iris_eval.descriptors.esm.target_map import (
 from lidar_iris_eval.matching.geometry import yaw_pose
 
 
-def reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds) -> list:
-    """The dense consistency matrix and the greedy sets read from it (``_consistent_sets``)."""
+def dense_consistency(qa, tb, t_world, q_cent, threshold) -> np.ndarray:
+    """The whole ``(n, n)`` consistency matrix, as the search before the lazy one formed it."""
     src, dst = t_world[tb], q_cent[qa]
     ds = np.linalg.norm((src[:, None] - src[None]).astype(np.float32), axis=2)
     dd = np.linalg.norm((dst[:, None] - dst[None]).astype(np.float32), axis=2)
     ok = np.abs(ds - dd) <= threshold
     ok &= qa[:, None] != qa[None, :]
     ok &= tb[:, None] != tb[None, :]
+    return ok
+
+
+def reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds,
+                   grow: str = "order") -> list:
+    """The dense consistency matrix and the greedy sets read from it (``_consistent_sets``).
+
+    ``grow="order"``: the next member is the first allowed one; ``"degree"``: the allowed
+    one consistent with most of the others still allowed, degrees recounted at every step
+    (ties: the first), the oracle of ``target_map._grow_degree``.
+    """
+    ok = dense_consistency(qa, tb, t_world, q_cent, threshold)
     degree = ok.sum(1)
     out = []
     for seed in range(seeds):
         if degree[seed] + 1 < min_consistent:
             continue
         members = [seed]
-        allowed = ok[seed].copy()
-        while allowed.any():
-            c = int(np.argmax(allowed))
+        alive = np.flatnonzero(ok[seed])
+        while len(alive):
+            if grow == "degree":
+                c = int(alive[int(np.argmax(ok[np.ix_(alive, alive)].sum(1)))])
+            else:
+                c = int(alive[0])
             members.append(c)
-            allowed &= ok[c]
+            alive = alive[ok[c, alive]]
         if len(members) >= min_consistent:
             out.append((seed, np.asarray(members)))
     return out
@@ -159,8 +174,9 @@ def _exact_ties(args, knn: int, threshold: float) -> int:
     return int((np.abs(ds - dd) == np.float32(threshold)).sum())
 
 
+@pytest.mark.parametrize("grow", ["order", "degree"])
 @pytest.mark.parametrize("case", range(len(CASES)))
-def test_localise_equals_the_dense_reference(case):
+def test_localise_equals_the_dense_reference(case, grow):
     grid, levels, tied, threshold, line = CASES[case]
     rng = np.random.default_rng(100 + case)
     accepted = rejected = ties = 0
@@ -173,7 +189,7 @@ def test_localise_equals_the_dense_reference(case):
         kw = dict(knn=knn, threshold=threshold,
                   min_consistent=6 if few else int(rng.choice([3, 4, 6])),
                   iterations=int(rng.choice([1, 7, 70, 300])),  # 70 > one seed block
-                  frame_rule=("estimate", "segments")[trial % 2], max_offset=4.0)
+                  frame_rule=("estimate", "segments")[trial % 2], max_offset=4.0, grow=grow)
         new, ref = localise(*args, **kw), reference_localise(*args, **kw)
         assert same_outcome(new, ref), (case, trial, new, ref)
         accepted += new.frame >= 0
@@ -216,8 +232,9 @@ def test_centroid_distances_are_the_dense_norm_bit_for_bit():
                           np.linalg.norm(d, axis=1))
 
 
+@pytest.mark.parametrize("grow", ["order", "degree"])
 @pytest.mark.parametrize("grid", [None, 0.6, 1.0])
-def test_consistent_sets_equal_the_dense_sets(grid):
+def test_consistent_sets_equal_the_dense_sets(grid, grow):
     """Every seed's set, winning or not, over correspondence lists longer than a seed block."""
     rng = np.random.default_rng(11)
     for _ in range(6):
@@ -233,8 +250,10 @@ def test_consistent_sets_equal_the_dense_sets(grid):
             t_world[:, 0] = q_cent[rng.integers(nq, size=nt), 0] + rng.integers(2, size=nt) * grid
             threshold = grid
         for seeds, min_consistent in [(n, 3), (min(n, 300), 6), (min(n, 70), 1)]:
-            new = _consistent_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds)
-            ref = reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds)
+            new = _consistent_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds,
+                                   grow)
+            ref = reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds,
+                                 grow)
             assert same_sets(new, ref)
             assert len(ref) > 0 or min_consistent > 1
 
