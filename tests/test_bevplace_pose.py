@@ -82,6 +82,35 @@ def test_fast_equal_neighbouring_maxima_both_go():
     assert len(fast.detect(img, nonmax=False)) >= 2
 
 
+#: OpenCV 5.1.0's ``FastFeatureDetector_create().detect`` (its defaults, as the authors call
+#: it), recorded once: keypoint count and SHA-256 (16 hex) of the (row, col) int64 pairs in the
+#: order OpenCV returns them (int(pt.y), int(pt.x))
+OPENCV_FAST = {"random": (4016, "b42dbc6378cc7b08"), "sparse": (2438, "ec12787951376296"),
+               "000094": (646, "4149f8c311c6fbd6"), "000199": (596, "65093d07bcf83e0c")}
+
+
+def _digest(kps: np.ndarray) -> str:
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(kps, dtype=np.int64).tobytes()).hexdigest()[:16]
+
+
+def test_fast_gives_opencvs_keypoints_in_its_order():
+    rng = np.random.default_rng(0)
+    images = {"random": rng.integers(0, 256, (201, 201)).astype(np.uint8)}
+    mask = rng.random((201, 201)) < 0.1
+    images["sparse"] = mask.astype(np.uint8) * rng.integers(0, 256, (201, 201)).astype(np.uint8)
+    for name, image in images.items():
+        kps = fast.detect(image)
+        assert (len(kps), _digest(kps)) == OPENCV_FAST[name], name
+
+
+def test_fast_gives_opencvs_keypoints_on_kitti_bev_images():
+    for name in ("000094", "000199"):
+        kps = fast.detect(bev.bev_image(_scan(name)))
+        assert (len(kps), _digest(kps)) == OPENCV_FAST[name], name
+
+
 # ------------------------------------------------------------------ RANSAC
 
 

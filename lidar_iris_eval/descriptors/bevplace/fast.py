@@ -21,7 +21,10 @@ documented behaviour:
 
 Keypoints are returned in raster order (row, then column), the order OpenCV
 emits them; ``(row, col)`` integer pixels (OpenCV's ``pt`` is ``(col, row)``
-as floats, which the authors truncate back to integers).
+as floats, which the authors truncate back to integers). Checked against
+OpenCV 5.1.0 (``opencv-python-headless``, in a separate environment): the same
+keypoints in the same order on the four KITTI sample BEV images and on a
+dense and a sparse random image (recorded in ``tests/test_bevplace_pose.py``).
 """
 
 from __future__ import annotations
