@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import KITTI, run_cli
+from conftest import KITTI, assert_one_line_error, run_cli
 
 from lidar_iris_eval.descriptors import get_descriptor
 from lidar_iris_eval.descriptors.bevplace import bev, fast, network, pose
@@ -329,3 +329,17 @@ def test_feature_sets_taken_by_an_index_array():
     assert len(feats[np.array([], dtype=np.int64)]) == 0
     with pytest.raises(IndexError):
         feats[np.array([5])]
+
+
+@pytest.mark.parametrize("param, fragment", [("pixel_offset=2", "pixel_offset"),
+                                             ("ransac_iterations=0", "ransac_iterations"),
+                                             ("inlier_threshold=-1", "inlier_threshold"),
+                                             ("keypoint_threshold=255", "keypoint_threshold")])
+def test_bad_pose_parameters_are_one_error_line(tmp_path, capsys, param, fragment):
+    from lidar_iris_eval.simulate.pipeline import simulate_sequence
+
+    seq = simulate_sequence(tmp_path / "seq", "tiny-mixed", frames=2, azimuth_steps=64)
+    code, _, err = run_cli(["extract", seq, "-d", "bevplace", "--param", f"bevplace.{param}",
+                            "--cache-dir", tmp_path / "c", "-q"], capsys)
+    assert_one_line_error(code, err, "bevplace", fragment)
+    assert not (tmp_path / "c").exists() or not any((tmp_path / "c").rglob("*.npz"))
