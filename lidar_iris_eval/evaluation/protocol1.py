@@ -336,10 +336,11 @@ def with_estimated_poses(descriptor: Descriptor, descriptors, matches: BestMatch
     (:meth:`~lidar_iris_eval.descriptors.base.Descriptor.estimate_poses`), their
     yaw in the descriptor convention and their inliers; the time is matching time.
     Unchanged for a method that estimates none or that already gave poses."""
-    if matches.pose is not None or descriptor.two_stage:
+    estimate = getattr(descriptor, "estimate_poses", None)
+    if matches.pose is not None or getattr(descriptor, "two_stage", False) or estimate is None:
         return matches
     began = time.perf_counter()
-    out = descriptor.estimate_poses(descriptors, matches.query, matches.match)
+    out = estimate(descriptors, matches.query, matches.match)
     if out is None:
         return matches
     pose, inliers = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)
