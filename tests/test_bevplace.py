@@ -163,6 +163,26 @@ def test_numpy_forward_equals_torch_on_random_weights():
         assert np.max(np.abs(ours[0] - ours[1])) > 2e-4
 
 
+def test_local_features_equal_torch_at_the_fast_keypoints():
+    """The pose's local features: the REM's second output (torch: the full 201 x 201 map)
+    read at the FAST keypoints, against the NumPy pass that evaluates those pixels only."""
+    from lidar_iris_eval.descriptors.bevplace import fast
+
+    w = network.random_weights(seed=5)
+    torch, net = _torch_net(w)
+    scans = _real_scans()
+    image = bev.bev_image(scans[0])
+    x = bev.network_input(image[None])
+    with torch.no_grad():
+        theirs = net.local_map(torch.from_numpy(x)).numpy()[0].transpose(1, 2, 0)
+    glob, best = network.forward_with_maximum(w, x)
+    px = fast.detect(image)
+    assert len(px) > 100
+    ours = network.local_features(best[0], px, image.shape)
+    assert np.max(np.abs(ours - theirs[px[:, 0], px[:, 1]])) <= 1e-5
+    assert np.array_equal(glob, network.forward(w, x))
+
+
 def test_descriptor_is_invariant_to_a_quarter_turn_of_the_image():
     """The eight warps of a quarter-turned image are the same eight images in another
     order; warped back and max-pooled, the map is the turned map, pooled by NetVLAD."""

@@ -285,6 +285,19 @@ class Descriptor(abc.ABC):
         return Verification(np.asarray(dist, dtype=np.float64), yaw_to_pose(yaw),
                             np.zeros(len(candidates), np.int64), yaw)
 
+    def estimate_poses(self, features: Any, query: np.ndarray, match: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Relative poses of a global descriptor's protocol 1 matches, or None (default).
+
+        A global descriptor whose authors estimate a pose for a retrieved match
+        (after the exhaustive search, which stays the same) returns ``(Q, 4,
+        4)`` poses (the match's LiDAR frame into the query's, NaN where none)
+        and ``(Q,)`` inlier counts for the pairs ``(query[q], match[q])``
+        (``match < 0``: no match, NaN pose). ``features`` are the sequence's
+        stacked descriptors or feature sets.
+        """
+        return None
+
     def distances(self, query: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One query against a stacked database: ``(M,)`` distances and yaws.
 

@@ -153,6 +153,8 @@ class RaggedFeatures:
             if step != 1:
                 raise ValueError("only contiguous slices of features are supported")
             return self._range(a, max(a, b))
+        if isinstance(index, (np.ndarray, list, tuple)):
+            return self._take(np.asarray(index, dtype=np.int64).reshape(-1))
         i = int(index)
         if i < 0:
             i += len(self)
@@ -166,6 +168,21 @@ class RaggedFeatures:
             off = self.offsets[k]
             values[k] = v[off[a]: off[b]]
             offsets[k] = off[a: b + 1] - off[a]
+        return RaggedFeatures(values, offsets)
+
+    def _take(self, rows: np.ndarray) -> RaggedFeatures:
+        """The scans ``rows`` (any order, negatives from the end) as a new, copied set; what
+        the block pass reads for a non-contiguous run of queries."""
+        n = len(self)
+        rows = np.where(rows < 0, rows + n, rows)
+        if len(rows) and (rows.min() < 0 or rows.max() >= n):
+            raise IndexError(f"scans {rows.min()}..{rows.max()} out of range for {n} scans")
+        values, offsets = {}, {}
+        for k, v in self.values.items():
+            off = self.offsets[k]
+            parts = [v[off[i]: off[i + 1]] for i in rows]
+            values[k] = np.concatenate(parts) if parts else v[:0]
+            offsets[k] = _offsets([len(p) for p in parts])
         return RaggedFeatures(values, offsets)
 
     def stacked(self, key: str) -> np.ndarray:

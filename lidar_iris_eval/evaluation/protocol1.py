@@ -25,8 +25,9 @@ Recall denominators (named in every output):
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -48,7 +49,7 @@ from lidar_iris_eval.evaluation.poses import (
 )
 from lidar_iris_eval.evaluation.settings import RECALL_DENOMINATORS, Settings
 from lidar_iris_eval.matching.blocks import BestMatches, best_matches
-from lidar_iris_eval.matching.retrieval import two_stage_matches
+from lidar_iris_eval.matching.retrieval import pose_yaw_deg, two_stage_matches
 
 #: heading difference above which a revisit counts as reverse-direction
 REVERSE_DEGREES = 90.0
@@ -329,6 +330,24 @@ def protocol1_inputs(descriptors, positions: np.ndarray, settings: Settings | No
     return settings, descriptors, limits, ground_truth_for(positions, settings, limits=limits)
 
 
+def with_estimated_poses(descriptor: Descriptor, descriptors, matches: BestMatches
+                         ) -> BestMatches:
+    """``matches`` carrying the poses a global descriptor estimates for them
+    (:meth:`~lidar_iris_eval.descriptors.base.Descriptor.estimate_poses`), their
+    yaw in the descriptor convention and their inliers; the time is matching time.
+    Unchanged for a method that estimates none or that already gave poses."""
+    estimate = getattr(descriptor, "estimate_poses", None)
+    if matches.pose is not None or getattr(descriptor, "two_stage", False) or estimate is None:
+        return matches
+    began = time.perf_counter()
+    out = estimate(descriptors, matches.query, matches.match)
+    if out is None:
+        return matches
+    pose, inliers = np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)
+    return replace(matches, pose=pose, inliers=inliers, yaw_deg=pose_yaw_deg(pose),
+                   seconds=matches.seconds + time.perf_counter() - began)
+
+
 def match_protocol1(descriptor: Descriptor, descriptors, limits: np.ndarray,
                     settings: Settings, progress: Callable[[int], object] | None = None,
                     executor=None) -> BestMatches:
@@ -343,8 +362,8 @@ def match_protocol1(descriptor: Descriptor, descriptors, limits: np.ndarray,
         k = settings.candidates if settings.candidates is not None \
             else descriptor.default_candidates()
         return two_stage_matches(descriptor, descriptors, limits, k, progress)
-    return best_matches(descriptor, descriptors, limits, settings.pair_budget, progress,
-                        executor)
+    return with_estimated_poses(descriptor, descriptors, best_matches(
+        descriptor, descriptors, limits, settings.pair_budget, progress, executor))
 
 
 def match_with_band(descriptor: Descriptor, descriptors, limits: np.ndarray,
@@ -368,7 +387,7 @@ def match_with_band(descriptor: Descriptor, descriptors, limits: np.ndarray,
     stacked = np.vstack([limits[None, :], np.asarray(band_limits, dtype=np.int64)])
     every = best_matches(descriptor, descriptors, stacked, settings.pair_budget, progress,
                          executor)
-    return every[0], tuple(every[1:])
+    return with_estimated_poses(descriptor, descriptors, every[0]), tuple(every[1:])
 
 
 def with_band(result: Protocol1Result, band: tuple[BestMatches, ...] | None) -> Protocol1Result:

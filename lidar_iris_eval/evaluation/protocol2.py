@@ -32,6 +32,7 @@ from lidar_iris_eval.evaluation.protocol1 import (
     settings_from,
     stacked_descriptors,
     with_band,
+    with_estimated_poses,
 )
 from lidar_iris_eval.evaluation.settings import Settings
 from lidar_iris_eval.evaluation.streaming_pr import (
@@ -200,6 +201,7 @@ def protocols_1_and_2(
     band = None
     if band_limits is not None:
         matches, band = matches[0], tuple(matches[1:])
+    matches = with_estimated_poses(descriptor, descriptors, matches)
     p1 = with_band(score_protocol1(matches, positions, gt1, forward=forward,
                                    lidar_poses=lidar_poses, **scoring_rules(s)), band)
     return p1, score_protocol2(affinity, gt2, ALL_PAIRS_RULE, curve)

@@ -26,8 +26,10 @@ only), on ``(B, 3, 201, 201)`` BEV images (:mod:`.bev`):
   ``k * 128 + c``) and L2-normalised: an 8192-d unit vector, compared by the
   authors with faiss' ``IndexFlatL2`` (squared L2).
 
-The local-feature branch (the same maximum map resampled to 201 x 201 for
-keypoint descriptors and the RANSAC pose) is not computed here.
+The local-feature branch (the REM's second output: the same maximum map
+resampled to the full 201 x 201 and L2-normalised per pixel) is evaluated
+at the keypoints only (:func:`local_features`), for the RANSAC pose
+(:mod:`.pose`).
 
 Weights are a dict of float32 arrays under the authors' ``state_dict`` names
 (``rem.encoder.0.weight``, ``rem.encoder.4.0.bn1.running_var``,
@@ -291,6 +293,22 @@ def _l2(x: np.ndarray, axis: int) -> np.ndarray:
 
 def rem_features(w: dict, images: np.ndarray, rotations: int = ROTATIONS) -> np.ndarray:
     """``(B, H//4, W//4, 128)`` unit local features for NetVLAD (the REM's first output)."""
+    return netvlad_input(rem_maximum(w, images, rotations), np.shape(images)[2:])
+
+
+def netvlad_input(best: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """The maximum map resampled to ``(H//4, W//4)`` and L2-normalised per location."""
+    h, wd = size
+    grid = warp(best, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0), (h // 4, wd // 4))
+    return _l2(grid, axis=3)
+
+
+def rem_maximum(w: dict, images: np.ndarray, rotations: int = ROTATIONS) -> np.ndarray:
+    """``(B, h8, w8, 128)`` element-wise maximum of the warped-back encoder maps.
+
+    What both of the REM's outputs resample: NetVLAD's input (``H//4``) and the
+    local features of the keypoints (``H``, :func:`local_features`).
+    """
     x = np.asarray(images, dtype=np.float32)
     if x.ndim != 4 or x.shape[1] != 3:
         raise ValueError(f"expected (B, 3, H, W) BEV images, got shape {x.shape}")
@@ -304,8 +322,29 @@ def rem_features(w: dict, images: np.ndarray, rotations: int = ROTATIONS) -> np.
     for r, a in enumerate(turns):
         back = warp(feats[r * b:(r + 1) * b], rotation_theta(a), size)
         best = back if best is None else np.maximum(best, back)
-    grid = warp(best, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0), (h // 4, wd // 4))
-    return _l2(grid, axis=3)
+    return best
+
+
+def local_features(best: np.ndarray, pixels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(K, 128)`` float32 unit local features of one scan at ``(K, 2)`` (row, col) pixels.
+
+    The REM's second output is the maximum map ``best`` (``(h8, w8, 128)``)
+    resampled to the input's full ``size`` (identity ``affine_grid``, bicubic,
+    ``align_corners=True``) and L2-normalised per pixel; the authors then read
+    it at the keypoints. Only those pixels are computed here (the same 16
+    taps of :func:`sampler` per pixel), not the 201 x 201 x 128 map.
+    """
+    px = np.asarray(pixels, dtype=np.int64).reshape(-1, 2)
+    h8, w8, c = best.shape
+    if len(px) == 0:
+        return np.zeros((0, c), dtype=np.float32)
+    index, weight = sampler((1.0, 0.0, 0.0, 0.0, 1.0, 0.0), (h8, w8), tuple(size))
+    cols = px[:, 0] * int(size[1]) + px[:, 1]
+    flat = best.reshape(h8 * w8, c)
+    out = np.zeros((len(px), c), dtype=np.float32)
+    for k in range(index.shape[0]):
+        out += weight[k, cols][:, None] * flat[index[k, cols]]
+    return _l2(out, axis=1)
 
 
 def netvlad(w: dict, x: np.ndarray) -> np.ndarray:
@@ -321,6 +360,13 @@ def netvlad(w: dict, x: np.ndarray) -> np.ndarray:
 
 def forward(w: dict, images: np.ndarray, rotations: int = ROTATIONS) -> np.ndarray:
     """``(B, 8192)`` float32 unit global descriptors of ``(B, 3, H, W)`` BEV images."""
-    feats = rem_features(w, images, rotations)
+    return forward_with_maximum(w, images, rotations)[0]
+
+
+def forward_with_maximum(w: dict, images: np.ndarray, rotations: int = ROTATIONS
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`forward`'s descriptors and the REM's maximum map (for :func:`local_features`)."""
+    best = rem_maximum(w, images, rotations)
+    feats = netvlad_input(best, np.shape(images)[2:])
     b = feats.shape[0]
-    return netvlad(w, feats.reshape(b, -1, DIM)).astype(np.float32)
+    return netvlad(w, feats.reshape(b, -1, DIM)).astype(np.float32), best

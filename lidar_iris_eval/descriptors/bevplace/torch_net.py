@@ -62,17 +62,31 @@ class _REM(nn.Module):
         grid = F.affine_grid(theta, list(size), align_corners=True)
         return F.grid_sample(x, grid, mode="bicubic", align_corners=True)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def maximum(self, x: torch.Tensor) -> torch.Tensor:
+        """The element-wise maximum of the eight warped-back encoder maps."""
         maps = []
         for angle in self.angles:
             out = self.encoder(self._turn(x, -angle, x.shape))
             maps.append(self._turn(out, angle, out.shape))
-        best = torch.stack(maps, dim=-1).amax(dim=-1)
-        b, _, h, w = x.shape
-        eye = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=x.dtype,
-                           device=x.device).expand(b, 2, 3)
-        grid = F.affine_grid(eye, [b, best.shape[1], h // 4, w // 4], align_corners=True)
+        return torch.stack(maps, dim=-1).amax(dim=-1)
+
+    @staticmethod
+    def resampled(best: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """``best`` resampled to ``h x w`` (identity grid, bicubic) and normalised per pixel."""
+        b = best.shape[0]
+        eye = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=best.dtype,
+                           device=best.device).expand(b, 2, 3)
+        grid = F.affine_grid(eye, [b, best.shape[1], h, w], align_corners=True)
         return F.normalize(F.grid_sample(best, grid, mode="bicubic", align_corners=True), dim=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        _, _, h, w = x.shape
+        return self.resampled(self.maximum(x), h // 4, w // 4)
+
+    def local_map(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, 128, H, W)``: the REM's second output, the keypoints' local features."""
+        _, _, h, w = x.shape
+        return self.resampled(self.maximum(x), h, w)
 
 
 class _NetVLAD(nn.Module):
@@ -102,6 +116,10 @@ class BEVPlaceNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.pooling(self.rem(x))
+
+    def local_map(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, 128, H, W)`` unit local features at every pixel (the REM's second output)."""
+        return self.rem.local_map(x)
 
 
 def load_numpy(net: BEVPlaceNet, weights: dict[str, np.ndarray]) -> None:
