@@ -78,6 +78,8 @@ def test_parameters_are_checked():
      DATA.with_name("esm_localmap_real_golden.npz")),
     (network.WEIGHTS_FILE.with_name("esm_localmap_simreal_weights.npz"),
      DATA.with_name("esm_localmap_simreal_golden.npz")),
+    (network.WEIGHTS_FILE.with_name("esm_forest_weights.npz"),
+     DATA.with_name("esm_forest_golden.npz")),
 ])
 def test_golden_embeddings_of_the_shipped_weights(weights, golden):
     if not weights.is_file():
