@@ -181,9 +181,10 @@ def bench_check(seq_path: str, exclude: int, every: int) -> dict:
     counts = {"queries": 0, "same_localisation": 0, "calls": 0, "same_sets": 0, "seeds": 0,
               "sets": 0, "correspondences_max": 0}
 
-    def both(qa, tb, t_world, q_cent, threshold, min_consistent, seeds):
-        new = lazy(qa, tb, t_world, q_cent, threshold, min_consistent, seeds)
-        old = ref.reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds)
+    def both(qa, tb, t_world, q_cent, threshold, min_consistent, seeds, grow="order"):
+        new = lazy(qa, tb, t_world, q_cent, threshold, min_consistent, seeds, grow)
+        old = ref.reference_sets(qa, tb, t_world, q_cent, threshold, min_consistent, seeds,
+                                 grow)
         counts["calls"] += 1
         counts["same_sets"] += ref.same_sets(new, old)
         counts["seeds"] += seeds

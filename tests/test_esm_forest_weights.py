@@ -47,7 +47,9 @@ def test_no_preset_uses_the_forest_weights(forest):
     for name in presets:
         assert get_descriptor("esm", name).weights_path != forest, name
     (default,) = build_descriptors("esm", None)
-    assert default.weights_path == network.LOCALMAP_WEIGHTS_FILE
+    # the default is the local-map preset's network (docs/esm.md), not the forest one
+    assert default.weights_path == network.WEIGHTS_FILE.with_name(
+        "esm_localmap_simreal_weights.npz")
 
 
 def test_the_figures_belong_to_this_file_and_follow_the_selection_rule(forest):
