@@ -263,18 +263,34 @@ def _consistent_sets(qa: np.ndarray, tb: np.ndarray, t_world: np.ndarray, q_cent
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _agree(c: int, x: int, src: np.ndarray, dq: np.ndarray, qa: np.ndarray, tb: np.ndarray,
+           limit: float) -> bool:  # pragma: no cover - compiled
+    """Correspondences ``c`` and ``x`` are consistent (compiled, inlined into the growths).
+
+    Never the same query or target segment; the target-side distance in
+    :func:`_centroid_distances`' float32 arithmetic written per element (the float64
+    difference rounded to float32, squares summed ``(x + y) + z``, a float32 square
+    root) against the query-side ``dq``, compared with ``limit``, the threshold in the
+    type NumPy compares a float32 array with (:func:`_comparison_limit`), so every
+    decision is the vectorised one's.
+    """
+    if qa[x] == qa[c] or tb[x] == tb[c]:
+        return False
+    d0 = np.float32(src[c, 0] - src[x, 0])
+    d1 = np.float32(src[c, 1] - src[x, 1])
+    d2 = np.float32(src[c, 2] - src[x, 2])
+    dist = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+    return np.float64(abs(dist - dq[qa[c], qa[x]])) <= limit
+
+
 @numba.njit(cache=True)
 def _grow(seed: int, allowed: np.ndarray, src: np.ndarray, dq: np.ndarray, qa: np.ndarray,
           tb: np.ndarray, limit: float) -> np.ndarray:  # pragma: no cover - compiled
     """One seed's greedy set (``_consistent_sets``' inner loop, compiled).
 
     Takes the first allowed correspondence ``c`` and keeps of the rest those
-    consistent with it, until none is left; the distance is
-    :func:`_centroid_distances`' float32 arithmetic written per element (the
-    float64 difference rounded to float32, squares summed ``(x + y) + z``, a
-    float32 square root) and ``limit`` is the threshold in the type NumPy
-    compares a float32 array with (:func:`_comparison_limit`), so every
-    decision is the vectorised loop's.
+    consistent with it (:func:`_agree`), until none is left.
     """
     members = np.empty(len(allowed) + 1, np.int64)
     members[0] = seed
@@ -288,13 +304,7 @@ def _grow(seed: int, allowed: np.ndarray, src: np.ndarray, dq: np.ndarray, qa: n
         w = 0
         for r in range(1, n):
             x = rest[r]
-            if qa[x] == qa[c] or tb[x] == tb[c]:
-                continue
-            d0 = np.float32(src[c, 0] - src[x, 0])
-            d1 = np.float32(src[c, 1] - src[x, 1])
-            d2 = np.float32(src[c, 2] - src[x, 2])
-            dist = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
-            if np.float64(abs(dist - dq[qa[c], qa[x]])) <= limit:
+            if _agree(c, x, src, dq, qa, tb, limit):
                 rest[w] = x
                 w += 1
         n = w
@@ -307,7 +317,7 @@ def _grow_degree(seed: int, allowed: np.ndarray, src: np.ndarray, dq: np.ndarray
     """One seed's greedy set, most-consistent candidate first (compiled).
 
     The consistency among the ``allowed`` correspondences (those consistent
-    with the seed) is formed once, with :func:`_grow`'s float32 arithmetic;
+    with the seed) is formed once (:func:`_agree`);
     then, while any is left, the candidate consistent with most of the others
     still left joins (ties: the earlier in PROSAC order) and the rest is cut to
     its consistent ones. The classic greedy approximation of a maximum clique
@@ -320,14 +330,7 @@ def _grow_degree(seed: int, allowed: np.ndarray, src: np.ndarray, dq: np.ndarray
     for a in range(n):
         ca = allowed[a]
         for b in range(a + 1, n):
-            cb = allowed[b]
-            if qa[ca] == qa[cb] or tb[ca] == tb[cb]:
-                continue
-            d0 = np.float32(src[ca, 0] - src[cb, 0])
-            d1 = np.float32(src[ca, 1] - src[cb, 1])
-            d2 = np.float32(src[ca, 2] - src[cb, 2])
-            dist = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
-            if np.float64(abs(dist - dq[qa[ca], qa[cb]])) <= limit:
+            if _agree(ca, allowed[b], src, dq, qa, tb, limit):
                 ok[a, b] = True
                 ok[b, a] = True
     alive = np.ones(n, np.bool_)
