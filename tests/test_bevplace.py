@@ -297,6 +297,16 @@ def test_eval_runs_protocol_1(tmp_path, capsys):
     assert rows[0]["weights"] == "random-init" and rows[0]["weights_trained"] is False
     assert rows[0]["weights_sha256"] == get_descriptor("bevplace").cache_token()
     assert 0.0 < rows[0]["f1_max"] <= 1.0
+    # every match carries the authors' planar pose (descriptors/bevplace/pose.py)
+    assert rows[0]["pose_estimate"] == "full" and rows[0]["rr_kind"] == "full"
+    assert rows[0]["rte_m_median"] is not None and rows[0]["rre_deg_median"] is not None
+    import pandas as pd
+
+    table = pd.read_csv(out / "protocol1" / "bevplace" / "matches.csv")
+    assert {"inliers", "T03", "T13"} <= set(table.columns)
+    true = table[table.is_true.astype(bool)]
+    assert len(true) and np.isfinite(true[["T03", "T13", "rte_m"]].to_numpy()).all()
+    assert (true["T23"] == 0).all()
 
 
 @pytest.mark.parametrize("metric", ["l2sq", "cosine"])

@@ -7,7 +7,6 @@ from the results.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 
 import numpy as np
@@ -277,27 +276,6 @@ def test_feature_set_shapes_and_cache_round_trip(tmp_path, bevplace):
     third = extract(seq, other, cache=tmp_path / "cache")
     assert not third.from_cache and third.cache_path != again.cache_path
     assert third.descriptors.counts("keypoints").sum() < b.counts("keypoints").sum()
-
-
-def test_eval_reports_planar_pose_errors(tmp_path, capsys):
-    from lidar_iris_eval.simulate.pipeline import simulate_sequence
-
-    seq = simulate_sequence(tmp_path / "seq", "tiny-mixed", frames=6, azimuth_steps=512)
-    out = tmp_path / "run"
-    code, _, err = run_cli(["eval", seq, "-d", "bevplace", "--protocol", "1", "--exclude", "2",
-                            "--cache-dir", tmp_path / "cache", "--out", out, "-q"], capsys)
-    assert code == 0, err
-    row = next(r for r in json.loads((out / "metrics.json").read_text())["results"]
-               if r["descriptor"] == "bevplace")
-    assert row["pose_estimate"] == "full" and row["rr_kind"] == "full"
-    assert row["rte_m_median"] is not None and row["rre_deg_median"] is not None
-    import pandas as pd
-
-    table = pd.read_csv(out / "protocol1" / "bevplace" / "matches.csv")
-    assert {"inliers", "T03", "T13"} <= set(table.columns)
-    true = table[table.is_true.astype(bool)]
-    assert len(true) and np.isfinite(true[["T03", "T13", "rte_m"]].to_numpy()).all()
-    assert (true["T23"] == 0).all()
 
 
 def test_pose_off_keeps_the_matches_and_reports_none(tmp_path):
