@@ -13,7 +13,9 @@ import pytest
 from conftest import KITTI, assert_one_line_error, run_cli
 
 from lidar_iris_eval.descriptors import get_descriptor
+from lidar_iris_eval.descriptors.learned import weights_digest
 from lidar_iris_eval.descriptors.overlap_transformer import checkpoint, network, projection
+from lidar_iris_eval.descriptors.overlap_transformer.descriptor import SHIPPED_DIR, SIM_WEIGHTS
 from lidar_iris_eval.errors import LirisError
 
 SAMPLES = KITTI / "samples" / "00" / "velodyne"
@@ -93,9 +95,10 @@ def test_numpy_forward_equals_torch_on_random_weights():
     assert (d_ours.argmin(1) == d_theirs.argmin(1)).all()
 
 
-def test_descriptor_is_yaw_invariant():
+@pytest.mark.parametrize("weights", [SIM_WEIGHTS, "random-init"])
+def test_descriptor_is_yaw_invariant(weights):
     """Column shifts are exact by construction; other turns move points between pixels."""
-    desc = get_descriptor("overlap-transformer", preset="paper")
+    desc = get_descriptor("overlap-transformer", preset="paper", weights=weights)
     scans = _kitti_scans()
     if not scans:
         rng = np.random.default_rng(3)
@@ -174,7 +177,7 @@ def test_hand_built_model_checkpoint_gives_the_same_descriptors(tmp_path):
     path = tmp_path / "model.pth.tar"
     hand_checkpoint(path, {f"module.{k}": v for k, v in weights.items()})
     from_file = get_descriptor("overlap-transformer", weights=str(path))
-    generated = get_descriptor("overlap-transformer", seed=2)
+    generated = get_descriptor("overlap-transformer", weights="random-init", seed=2)
     img = np.random.default_rng(4).uniform(0, 50, (2, 64, 900)).astype(np.float32)
     assert np.array_equal(from_file.compute_images(img), generated.compute_images(img))
     assert from_file.cache_token() != generated.cache_token()  # file bytes vs arrays
@@ -246,10 +249,17 @@ def test_malicious_checkpoints_are_refused(tmp_path):
     assert not marker.exists()
 
 
-@pytest.mark.parametrize("kind", ["truncated", "not-zip", "legacy", "missing", "wrong-model"])
+@pytest.mark.parametrize("kind", ["truncated", "not-zip", "legacy", "missing", "wrong-model",
+                                  "frozen-sha"])
 def test_bad_weights_are_one_error_line(tmp_path, capsys, kind):
     path = tmp_path / "w.pth.tar"
-    if kind == "truncated":
+    if kind == "frozen-sha":  # liris' format, the frozen projection's digest not its seed's
+        path = tmp_path / "w.npz"
+        with np.load(SHIPPED_DIR / SIM_WEIGHTS) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays[network.FROZEN_SHA256] = np.array("0" * 64)
+        np.savez(path, **arrays)
+    elif kind == "truncated":
         hand_checkpoint(path, {"a": np.zeros(1000, np.float32)})
         path.write_bytes(path.read_bytes()[:-300])
     elif kind == "not-zip":
@@ -287,6 +297,7 @@ def test_eval_runs_both_protocols(tmp_path, capsys):
     out = tmp_path / "run"
     code, _, err = run_cli(["eval", seq, "-d", "overlap-transformer", "--protocol", "1",
                             "--protocol", "2", "--exclude", "5", "--cache-dir", tmp_path / "cache",
+                            "--param", "overlap-transformer.weights=random-init",
                             "--out", out, "-q"], capsys)
     assert code == 0, err
     rows = [r for r in json.loads((out / "metrics.json").read_text())["results"]
@@ -310,3 +321,133 @@ def test_distances_agree_and_the_method_pickles(metric):
     cos = d @ d.T
     expected = {"l2sq": 2 - 2 * cos, "l2": np.sqrt(np.maximum(2 - 2 * cos, 0)), "cosine": 1 - cos}
     assert np.allclose(full, expected[metric], atol=1e-7)  # sqrt of a rounding 0 ~ 3e-8
+
+
+# ------------------------------------------------------------------ liris' trained weights
+
+#: SHA-256 of the shipped ot_sim_weights.npz (a retrained file changes it: update the
+#: model card's figures with it)
+SIM_SHA256 = "c9494b8ba40ba48b20903ed06d375eb7b46cad538bbd9c62f0757e4a7d4fab25"
+#: SHA-256 of network.frozen_projection(1) (16.8 M float32, regenerated at load)
+FROZEN_SEED1_SHA256 = "80734f3b25f43f059a1799dabd92feed0ddc599b1f380024991d22cd2d7a8cc9"
+
+
+def test_shipped_weights_are_the_default_and_pinned():
+    import hashlib
+
+    path = SHIPPED_DIR / SIM_WEIGHTS
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == SIM_SHA256
+    for preset in ("paper", "reference", "float"):
+        desc = get_descriptor("overlap-transformer", preset=preset)
+        assert desc.params.weights == SIM_WEIGHTS, preset
+    desc = get_descriptor("overlap-transformer")  # the dataclass default too
+    info = desc.run_info()
+    assert info["weights"] == SIM_WEIGHTS and info["weights_trained"] is True
+    assert info["weights_sha256"] == SIM_SHA256[:16]  # the file's bytes: the cache key
+    with np.load(path) as z:
+        assert int(z[network.FROZEN_SEED]) == 1
+        assert str(z[network.FROZEN_SHA256]) == FROZEN_SEED1_SHA256
+        assert network.FROZEN_NAME not in z.files
+        stored = sum(z[k].size for k in z.files if k in network.shapes())
+    assert stored == 1_678_480  # every weight but the frozen 65,536 x 256 projection
+    assert path.stat().st_size < 8_000_000
+
+
+def test_random_init_is_still_reachable_by_name():
+    desc = get_descriptor("overlap-transformer", preset="paper", weights="random-init")
+    info = desc.run_info()
+    assert info["weights"] == "random-init" and info["weights_trained"] is False
+    expected = weights_digest(network.random_weights(0), network.shapes())
+    assert info["weights_sha256"] == expected[:16]
+    assert info["weights_sha256"] != get_descriptor("overlap-transformer").cache_token()
+
+
+def test_frozen_projection_is_regenerated_exactly():
+    matrix = network.frozen_projection(1)
+    assert matrix.shape == (65536, 256) and matrix.dtype == np.float32
+    assert network.array_sha256(matrix) == FROZEN_SEED1_SHA256
+    assert np.array_equal(matrix, network.frozen_projection(1))
+    assert not np.array_equal(matrix[:4], network.frozen_projection(2)[:4])
+    assert abs(float(matrix.std()) - 1 / 32) < 1e-4  # the authors' randn / sqrt(1024) scale
+    loaded = get_descriptor("overlap-transformer").weights()
+    assert np.array_equal(loaded[network.FROZEN_NAME], matrix)
+    # a file holding both, or a seed without its digest, is refused
+    small = {network.FROZEN_SEED: np.array(1), network.FROZEN_SHA256: np.array("0" * 64)}
+    with pytest.raises(ValueError, match="SHA-256"):
+        network.expand_frozen(small)
+    with pytest.raises(ValueError, match="both"):
+        network.expand_frozen({**small, network.FROZEN_NAME: matrix})
+    with pytest.raises(ValueError, match="no "):
+        network.expand_frozen({network.FROZEN_SEED: np.array(1)})
+    plain = {"a": np.zeros(2)}
+    assert network.expand_frozen(plain) is plain  # the authors' files pass unchanged
+
+
+#: descriptors of the first real KITTI 00 sample scan with the shipped weights (``paper``)
+KITTI_GOLDEN = {"first8": [-0.002152, -0.145795, -0.001377, 0.009298, 0.008782, -0.07822,
+                           0.046752, 0.021891],
+                "cos01": 0.989439}
+
+
+def test_shipped_weights_golden_descriptors_on_kitti():
+    scans = _kitti_scans()
+    if not scans:
+        pytest.skip("no KITTI samples in ../shared")
+    desc = get_descriptor("overlap-transformer", preset="paper")
+    got = np.stack([desc.compute(s) for s in scans[:2]])
+    assert np.allclose(got[0, :8], KITTI_GOLDEN["first8"], atol=2e-5)
+    assert abs(float(got[0] @ got[1]) - KITTI_GOLDEN["cos01"]) < 2e-5
+    assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
+
+
+def test_shipped_weights_numpy_equals_torch():
+    w = get_descriptor("overlap-transformer").weights()
+    torch, net = _torch_net(w)
+    imgs = np.random.default_rng(6).uniform(0, 60, (2, 1, 64, 900)).astype(np.float32)
+    scans = _kitti_scans()
+    if scans:
+        imgs = np.concatenate([imgs] + [projection.range_image(s)[None, None] for s in scans])
+    with torch.no_grad():
+        theirs = net(torch.from_numpy(imgs)).numpy()
+    assert np.max(np.abs(network.forward(w, imgs) - theirs)) <= 1e-5
+
+
+def _train_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "train_overlap_transformer.py"
+    spec = importlib.util.spec_from_file_location("train_overlap_transformer", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_training_resumes_where_it_stopped(tmp_path):
+    """Two steps, a stop, two more steps == four steps at once (same weights, same log)."""
+    pytest.importorskip("torch")
+    script = _train_script()
+    rng = np.random.default_rng(0)
+    overlap = np.where(np.abs(np.subtract.outer(np.arange(6), np.arange(6))) <= 1, 0.9, 0.0)
+    images = rng.integers(0, 40, (6, 64, 900)).astype(np.float32)
+    for run in ("once", "twice"):
+        (tmp_path / run).mkdir()
+        np.savez(tmp_path / run / "world7001-s4.npz", images=images, overlap=overlap)
+    common = ["--seeds", "7001", "--positives", "1", "--negatives", "2", "--warmup", "2",
+              "--save-every", "1", "--snapshot-every", "1000"]
+    script.main(["--work", str(tmp_path / "once"), "--steps", "4", *common])
+    script.main(["--work", str(tmp_path / "twice"), "--steps", "2", *common])
+    script.main(["--work", str(tmp_path / "twice"), "--steps", "4", *common])
+    once, twice = (np.load(tmp_path / r / "ot_sim_weights.npz") for r in ("once", "twice"))
+    assert set(once.files) == set(twice.files)
+    for name in once.files:
+        if name != "liris.info":
+            assert np.array_equal(once[name], twice[name]), name
+    assert json.loads(str(twice["liris.info"]))["step"] == 4
+    logs = [(tmp_path / r / "losses.tsv").read_text().splitlines() for r in ("once", "twice")]
+    assert [line.split("\t")[:2] for line in logs[0]] == [line.split("\t")[:2] for line in logs[1]]
+    # the written file loads into the method and equals the trained torch model's forward
+    desc = get_descriptor("overlap-transformer", weights=str(tmp_path / "once" /
+                                                             "ot_sim_weights.npz"))
+    assert desc.run_info()["weights_trained"] is True
+    assert desc.compute_images(images[:1]).shape == (1, 256)

@@ -10,22 +10,31 @@ No yaw is estimated (the descriptor is yaw-invariant by construction).
 Weights: ``weights=PATH`` reads the user's checkpoint (the authors'
 ``pretrained_overlap_transformer.pth.tar`` or any ``torch.save`` of a model
 with their parameter names, :mod:`.checkpoint`, no torch needed), or an
-``.npz`` of the same names. Without it the method runs on **deterministic
-random weights** (``weights="random-init"``): NOT a trained model; see
-MODEL_CARD.md. The SHA-256 of the weights enters the cache key.
+``.npz`` of the same names. Without it the method runs on **liris' own weights**
+(``weights="ot_sim_weights.npz"``, shipped here): trained on simulated worlds only,
+NOT the authors', with NetVLAD's 65,536 x 256 projection frozen at a seeded random
+matrix that is regenerated at load (:func:`network.expand_frozen`); see MODEL_CARD.md.
+``weights="random-init"`` gives the deterministic random weights (not a trained
+model). The SHA-256 of the weights (the file's bytes) enters the cache key.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lidar_iris_eval.descriptors.learned import RANDOM_INIT, LearnedVectorDescriptor
+from lidar_iris_eval.descriptors.learned import LearnedVectorDescriptor
 from lidar_iris_eval.descriptors.overlap_transformer import network, projection
 from lidar_iris_eval.descriptors.vector_common import finite_xyz
 from lidar_iris_eval.errors import LirisError
+
+#: the folder of the weights files shipped with the method (``weights=NAME``)
+SHIPPED_DIR = Path(__file__).resolve().parent
+#: liris' own weights, trained on simulated worlds (MODEL_CARD.md; not the authors')
+SIM_WEIGHTS = "ot_sim_weights.npz"
 
 
 @dataclass(frozen=True)
@@ -45,8 +54,10 @@ class OverlapTransformerParams:
         the authors trained and tested on); ``"float"``: the in-code float image,
         empty pixels -1 (see :mod:`.projection`).
     weights : str
-        ``"random-init"`` (deterministic random weights, not trained), or the
-        path of a ``.pth`` / ``.pth.tar`` checkpoint or an ``.npz``.
+        ``"ot_sim_weights.npz"`` (liris' own weights trained on simulated worlds,
+        shipped beside this module; not the authors'), ``"random-init"``
+        (deterministic random weights, not trained), the name of another file
+        shipped here, or the path of a ``.pth`` / ``.pth.tar`` checkpoint or an ``.npz``.
     seed : int
         Seed of the random weights (only with ``weights="random-init"``).
     metric : str
@@ -59,7 +70,7 @@ class OverlapTransformerParams:
     fov_down: float = -25.0
     max_range: float = 80.0
     depth_format: str = "png"
-    weights: str = RANDOM_INIT
+    weights: str = SIM_WEIGHTS
     seed: int = 0
     metric: str = "l2sq"
 
@@ -87,6 +98,17 @@ class OverlapTransformer(LearnedVectorDescriptor):
                              f"to one row (64 does), got {p.height} x {p.width}")
         if not p.fov_up > p.fov_down:
             raise LirisError(source, f"fov_up ({p.fov_up}) must exceed fov_down ({p.fov_down})")
+
+    def _read_file(self, path: Path) -> tuple[dict, str]:
+        """A path, or the name of a file shipped beside this module; the frozen
+        NetVLAD projection of liris' own weights regenerated from its seed."""
+        if not path.exists() and len(path.parts) == 1 and (SHIPPED_DIR / path.name).is_file():
+            path = SHIPPED_DIR / path.name
+        weights, digest = super()._read_file(path)
+        try:
+            return network.expand_frozen(weights), digest
+        except ValueError as err:
+            raise self._error(f"{path}: {err}") from None
 
     def run_info(self) -> dict[str, Any]:
         return {**super().run_info(), "depth_format": self.params.depth_format}

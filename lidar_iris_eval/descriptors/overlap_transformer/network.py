@@ -125,6 +125,61 @@ def random_weights(seed: int = 0) -> dict[str, np.ndarray]:
     return w
 
 
+# ------------------------------------------------------------------ frozen projection
+
+#: the NetVLAD projection liris' own trained weights keep frozen (65,536 x 256: 16.8 M of
+#: the 18.5 M weights); a weights file may hold its seed and SHA-256 instead of the matrix
+FROZEN_NAME = _VLAD + "hidden1_weights"
+FROZEN_SEED = "liris.frozen_hidden1_seed"
+FROZEN_SHA256 = "liris.frozen_hidden1_sha256"
+
+
+def frozen_projection(seed: int) -> np.ndarray:
+    """The frozen ``(65536, 256)`` float32 NetVLAD projection of seed ``seed``.
+
+    Standard normal float32 draws of NumPy's ``default_rng(seed)`` (row-major),
+    divided by 32 = ``sqrt(1024)``: the scale of the authors' initialisation of
+    this matrix (``randn / sqrt(feature_size)``). Files that store the seed also
+    store the SHA-256 of these bytes, checked by :func:`expand_frozen`, so a
+    NumPy whose generator drew other numbers fails loudly instead of silently.
+    """
+    rng = np.random.default_rng(int(seed))
+    arr = rng.standard_normal((FEATURE * CLUSTERS, OUTPUT), dtype=np.float32)
+    arr *= np.float32(1.0 / 32.0)
+    return arr
+
+
+def array_sha256(arr: np.ndarray) -> str:
+    """SHA-256 of an array's little-endian float32 C-order bytes."""
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(arr, dtype="<f4").tobytes()).hexdigest()
+
+
+def expand_frozen(weights: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``weights`` with the frozen projection regenerated when the file stores its seed.
+
+    Files without :data:`FROZEN_SEED` (the authors' checkpoint, a full ``.npz``)
+    come back unchanged. Raises ``ValueError`` when the seed is there but the
+    SHA-256 is missing or differs from the regenerated matrix's, or when the
+    file holds both the seed and a matrix.
+    """
+    if FROZEN_SEED not in weights:
+        return weights
+    if FROZEN_NAME in weights:
+        raise ValueError(f"holds both {FROZEN_NAME!r} and {FROZEN_SEED!r}")
+    if FROZEN_SHA256 not in weights:
+        raise ValueError(f"holds {FROZEN_SEED!r} but no {FROZEN_SHA256!r}")
+    matrix = frozen_projection(int(np.asarray(weights[FROZEN_SEED])))
+    want = str(np.asarray(weights[FROZEN_SHA256]))
+    got = array_sha256(matrix)
+    if got != want:
+        raise ValueError(f"the frozen projection of seed {int(np.asarray(weights[FROZEN_SEED]))} "
+                         f"has SHA-256 {got[:16]}..., the file expects {want[:16]}... "
+                         "(this NumPy draws other random numbers)")
+    out = {k: v for k, v in weights.items() if k not in (FROZEN_SEED, FROZEN_SHA256)}
+    out[FROZEN_NAME] = matrix
+    return out
 
 
 def _relu(x: np.ndarray) -> np.ndarray:
