@@ -100,7 +100,7 @@ def scores(desc: np.ndarray, positions: np.ndarray, radius: float, exclude: int
         top.append(sq[i, j])
         true.append(dist[i, j] < radius)
         has.append(bool((dist[i, :i - exclude] < radius).any()))
-    top, true, has = np.array(top), np.array(true), np.array(has)
+    top, true, has = np.array(top, float), np.array(true, bool), np.array(has, bool)
     order = np.argsort(top)
     tp = np.cumsum(true[order])
     fp = np.cumsum(~true[order])
