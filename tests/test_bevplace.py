@@ -210,7 +210,7 @@ def test_hand_built_checkpoint_gives_the_same_descriptors_and_its_sha(tmp_path):
     path = tmp_path / "model_best.pth.tar"
     hand_checkpoint(path, {f"module.{k}": v for k, v in weights.items()})
     from_file = get_descriptor("bevplace", weights=str(path))
-    generated = get_descriptor("bevplace", seed=2)
+    generated = get_descriptor("bevplace", weights="random-init", seed=2)
     img = np.random.default_rng(4).integers(0, 256, (1, 201, 201)).astype(np.uint8)
     assert np.array_equal(from_file.compute_images(img), generated.compute_images(img))
     assert from_file.cache_token() == hashlib.sha256(path.read_bytes()).hexdigest()[:16]
@@ -290,11 +290,12 @@ def test_eval_runs_protocol_1(tmp_path, capsys):
     code, _, err = run_cli(["eval", seq, "-d", "bevplace", "--protocol", "1", "--exclude", "2",
                             "--cache-dir", tmp_path / "cache", "--out", out, "-q"], capsys)
     assert code == 0, err
-    assert "bevplace.weights=random-init" in err and "NOT a trained model" in err
+    # the default is the shipped file liris fitted on simulated worlds: no random-weights warning
+    assert "random-init" not in err and "NOT a trained model" not in err
     rows = [r for r in json.loads((out / "metrics.json").read_text())["results"]
             if r["descriptor"] == "bevplace"]
     assert [r["protocol"] for r in rows] == [1]
-    assert rows[0]["weights"] == "random-init" and rows[0]["weights_trained"] is False
+    assert rows[0]["weights"] == "bevplace_sim_weights.npz" and rows[0]["weights_trained"] is True
     assert rows[0]["weights_sha256"] == get_descriptor("bevplace").cache_token()
     assert 0.0 < rows[0]["f1_max"] <= 1.0
     # every match carries the authors' planar pose (descriptors/bevplace/pose.py)

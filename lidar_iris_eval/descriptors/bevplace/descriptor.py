@@ -14,25 +14,43 @@ and pitch 0): FAST keypoints of the two BEV images, their local features
 ``round(127 v)`` of the unit local features): 576 to 653 keypoints and 74 to
 84 kB on the KITTI samples, beside the 32 kB global vector.
 
-Weights: ``weights=PATH`` reads the user's checkpoint (the authors'
-``runs/<run>/model_best.pth.tar``, or any ``torch.save`` of a model with
-their parameter names; :mod:`lidar_iris_eval.descriptors.checkpoint`, no
-torch needed), or an ``.npz`` of the same names. Without it the method runs on
-**deterministic random weights** (``weights="random-init"``): NOT a trained
-model; see MODEL_CARD.md. The SHA-256 of the weights enters the cache key.
+Weights: by default the file liris fitted on simulated worlds
+(:data:`SHIPPED_WEIGHTS`, ``scripts/train_bevplace.py``: the random-init
+encoder with a NetVLAD fitted by k-means): NOT the authors' KITTI weights;
+see MODEL_CARD.md. ``weights=PATH`` reads the user's checkpoint
+(the authors' ``runs/<run>/model_best.pth.tar``, or any ``torch.save`` of a
+model with their parameter names; :mod:`lidar_iris_eval.descriptors.checkpoint`,
+no torch needed), or an ``.npz`` of the same names; a bare file name shipped
+beside this module is that file. ``weights="random-init"`` (preset
+``random-init``) gives the deterministic random weights, not a trained model.
+The SHA-256 of the weights (the file's bytes) enters the cache key.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from lidar_iris_eval.descriptors.bevplace import bev, fast, network, pose
 from lidar_iris_eval.descriptors.features import RaggedFeatures
-from lidar_iris_eval.descriptors.learned import RANDOM_INIT, LearnedVectorDescriptor
+from lidar_iris_eval.descriptors.learned import LearnedVectorDescriptor
 from lidar_iris_eval.descriptors.vector_common import finite_xyz
 from lidar_iris_eval.errors import LirisError
+
+#: the weights liris fitted on simulated worlds, shipped beside this module (float32);
+#: not the authors' (MODEL_CARD.md)
+SHIPPED_WEIGHTS = "bevplace_sim_weights.npz"
+WEIGHTS_DIR = Path(__file__).resolve().parent
+
+
+def resolve_weights(name: str | Path) -> Path:
+    """The file ``name`` means: a bare file name shipped beside this module, else a path."""
+    path = Path(name).expanduser()
+    if path.name == str(name) and (WEIGHTS_DIR / path.name).is_file():
+        return WEIGHTS_DIR / path.name
+    return path
 
 
 @dataclass(frozen=True)
@@ -51,8 +69,9 @@ class BEVPlaceParams:
     rotations : int
         Warped copies in the rotation-equivariant module (8, every 45 degrees).
     weights : str
-        ``"random-init"`` (deterministic random weights, not trained), or the
-        path of a ``.pth`` / ``.pth.tar`` checkpoint or an ``.npz``.
+        :data:`SHIPPED_WEIGHTS` (liris' simulated-world fit, not the
+        authors'), ``"random-init"`` (deterministic random weights, not
+        trained), or the path of a ``.pth`` / ``.pth.tar`` checkpoint or an ``.npz``.
     seed : int
         Seed of the random weights (only with ``weights="random-init"``).
     metric : str
@@ -78,7 +97,7 @@ class BEVPlaceParams:
     voxel_size: float = bev.VOXEL_SIZE
     count_cap: int = bev.COUNT_CAP
     rotations: int = network.ROTATIONS
-    weights: str = RANDOM_INIT
+    weights: str = SHIPPED_WEIGHTS
     seed: int = 0
     metric: str = "l2sq"
     keypoint_threshold: int = fast.THRESHOLD
@@ -119,6 +138,10 @@ class BEVPlace(LearnedVectorDescriptor):
                              f"keypoint_threshold ({p.keypoint_threshold}) in [0, 255)")
         if not 0.0 <= float(p.pixel_offset) <= 1.0:
             raise LirisError(source, f"pixel_offset ({p.pixel_offset}) must be in [0, 1]")
+
+    def _read_file(self, path: Path) -> tuple[dict, str]:
+        """A shipped file by its bare name (:func:`resolve_weights`), else the path."""
+        return super()._read_file(resolve_weights(path))
 
     # ------------------------------------------------------------------ describe
 
