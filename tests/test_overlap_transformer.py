@@ -353,6 +353,22 @@ def test_shipped_weights_are_the_default_and_pinned():
     assert path.stat().st_size < 8_000_000
 
 
+@pytest.mark.parametrize("method", ["overlap-transformer", "bevplace"])
+def test_a_file_named_like_the_shipped_weights_in_the_working_directory_does_not_shadow_it(
+        method, tmp_path, monkeypatch):
+    shipped = get_descriptor(method)
+    name = shipped.params.weights
+    expected = shipped.shipped_dir / name
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / name).write_bytes(b"not weights")  # would be refused if it were read
+    desc = get_descriptor(method)
+    import hashlib
+    assert desc.cache_token() == hashlib.sha256(expected.read_bytes()).hexdigest()[:16]
+    # a path (not a bare name) is the user's file: read, and refused in one line
+    with pytest.raises(LirisError, match="weights"):
+        get_descriptor(method, weights=str(tmp_path / name)).cache_token()
+
+
 def test_random_init_is_still_reachable_by_name():
     desc = get_descriptor("overlap-transformer", preset="paper", weights="random-init")
     info = desc.run_info()

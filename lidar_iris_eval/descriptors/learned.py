@@ -47,6 +47,15 @@ def weights_digest(weights: dict[str, np.ndarray], shapes: dict[str, tuple]) -> 
     return h.hexdigest()
 
 
+def resolve_shipped(name: str | Path, folder: Path | None) -> Path:
+    """The file a ``weights`` value means: a bare file name shipped in ``folder`` (the
+    method's own folder) wins over a file of that name in the working directory, as
+    ``esm.weights`` does; anything else is a path (``~`` expanded)."""
+    if folder is not None and Path(name).name == str(name) and (folder / str(name)).is_file():
+        return folder / str(name)
+    return Path(name).expanduser()
+
+
 def check_weights(weights: dict[str, np.ndarray], shapes: dict[str, tuple]) -> list[str]:
     """Problems that stop the forward pass (missing names, wrong shapes); empty if none."""
     problems = []
@@ -64,6 +73,8 @@ class LearnedVectorDescriptor(Descriptor):
 
     network: ModuleType
     model_name: str = ""
+    #: the folder whose files ``weights=NAME`` finds by bare name (the method's folder)
+    shipped_dir: Path | None = None
 
     def __init__(self, params=None, preset: str = "custom"):
         super().__init__(params, preset)
@@ -101,7 +112,8 @@ class LearnedVectorDescriptor(Descriptor):
                 w = self.network.random_weights(self.params.seed)
                 self._digest = weights_digest(w, self.network.shapes())
             else:
-                w, self._digest = self._read_file(Path(self.params.weights).expanduser())
+                w, self._digest = self._read_file(
+                    resolve_shipped(self.params.weights, self.shipped_dir))
             problems = check_weights(w, self.network.shapes())
             if problems:
                 shown = "; ".join(problems[:3]) + (f" (+{len(problems) - 3} more)"

@@ -35,7 +35,7 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.bevplace import bev, fast, network, pose
 from lidar_iris_eval.descriptors.features import RaggedFeatures
-from lidar_iris_eval.descriptors.learned import LearnedVectorDescriptor
+from lidar_iris_eval.descriptors.learned import LearnedVectorDescriptor, resolve_shipped
 from lidar_iris_eval.descriptors.vector_common import finite_xyz
 from lidar_iris_eval.errors import LirisError
 
@@ -47,10 +47,7 @@ WEIGHTS_DIR = Path(__file__).resolve().parent
 
 def resolve_weights(name: str | Path) -> Path:
     """The file ``name`` means: a bare file name shipped beside this module, else a path."""
-    path = Path(name).expanduser()
-    if path.name == str(name) and (WEIGHTS_DIR / path.name).is_file():
-        return WEIGHTS_DIR / path.name
-    return path
+    return resolve_shipped(name, WEIGHTS_DIR)
 
 
 @dataclass(frozen=True)
@@ -118,6 +115,7 @@ class BEVPlace(LearnedVectorDescriptor):
     symmetric = True
     network = network
     model_name = "BEVPlace++"
+    shipped_dir = WEIGHTS_DIR
 
     def __init__(self, params: BEVPlaceParams | None = None, preset: str = "custom"):
         super().__init__(params, preset)
@@ -138,10 +136,6 @@ class BEVPlace(LearnedVectorDescriptor):
                              f"keypoint_threshold ({p.keypoint_threshold}) in [0, 255)")
         if not 0.0 <= float(p.pixel_offset) <= 1.0:
             raise LirisError(source, f"pixel_offset ({p.pixel_offset}) must be in [0, 1]")
-
-    def _read_file(self, path: Path) -> tuple[dict, str]:
-        """A shipped file by its bare name (:func:`resolve_weights`), else the path."""
-        return super()._read_file(resolve_weights(path))
 
     # ------------------------------------------------------------------ describe
 

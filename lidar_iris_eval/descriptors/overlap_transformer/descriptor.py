@@ -85,6 +85,7 @@ class OverlapTransformer(LearnedVectorDescriptor):
     symmetric = True
     network = network
     model_name = "OverlapTransformer"
+    shipped_dir = SHIPPED_DIR
 
     def __init__(self, params: OverlapTransformerParams | None = None, preset: str = "custom"):
         super().__init__(params, preset)
@@ -100,10 +101,8 @@ class OverlapTransformer(LearnedVectorDescriptor):
             raise LirisError(source, f"fov_up ({p.fov_up}) must exceed fov_down ({p.fov_down})")
 
     def _read_file(self, path: Path) -> tuple[dict, str]:
-        """A path, or the name of a file shipped beside this module; the frozen
-        NetVLAD projection of liris' own weights regenerated from its seed."""
-        if not path.exists() and len(path.parts) == 1 and (SHIPPED_DIR / path.name).is_file():
-            path = SHIPPED_DIR / path.name
+        """The file's weights, the frozen NetVLAD projection of liris' own weights
+        regenerated from its seed."""
         weights, digest = super()._read_file(path)
         try:
             return network.expand_frozen(weights), digest
