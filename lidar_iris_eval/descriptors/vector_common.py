@@ -1,8 +1,15 @@
-"""Helpers shared by the fixed-length vector baselines (M2DP, ESF).
+"""Helpers shared by the fixed-length vector descriptors (M2DP, ESF, the learned ones).
 
-Both take raw points with the same input checks and compare descriptors by a
-row-wise norm; keeping the block loop here means the single-pair and batched
-paths of both run through one reduction, which is what makes them bitwise equal.
+M2DP and ESF take raw points with the same input checks and compare
+descriptors by a row-wise norm; keeping the block loop here means the
+single-pair and batched paths of both run through one reduction, which is what
+makes them bitwise equal.
+
+The learned descriptors (8192-d BEVPlace++, 256-d OverlapTransformer) compare
+through :func:`gram_pairwise` instead: ``|q|^2 + |r|^2 - 2 q.r`` with the cross
+term one BLAS matrix product, about 40x faster than the broadcast difference
+at 8192-d (docs/performance.md). Its routes stay bitwise equal by always
+calling the product on a padded shape (see :func:`gram_pairwise`).
 """
 
 from __future__ import annotations
@@ -15,6 +22,16 @@ from lidar_iris_eval.errors import LirisError, warn
 
 #: memory per block of query-vs-database differences
 BLOCK_BYTES = 32 * 2**20
+#: rows of queries / database converted to float64 per matrix product (bounds memory:
+#: 1024 x 8192 float64 is 64 MiB); the split never changes a value
+GRAM_QUERY_ROWS = 256
+GRAM_DATABASE_ROWS = 1024
+#: every product is padded (zero rows) to multiples of GRAM_TILE rows and to at
+#: least this many multiply-adds: OpenBLAS computes small products (M N K up to 1e6)
+#: with a separate kernel, and one-row ones as a matrix-vector product, which round
+#: differently; above it an entry's value does not depend on the shape it came in
+GRAM_MIN_MNK = 1 << 22
+GRAM_TILE = 8
 
 
 def finite_xyz(points: np.ndarray, minimum: int, dtype=np.float64,
@@ -73,3 +90,62 @@ def vector_rows(query: np.ndarray, rows: np.ndarray, metric: str = "l2sq") -> np
     diff *= diff
     sq = np.sum(diff, axis=-1)
     return sq if metric == "l2sq" else np.sqrt(sq)
+
+
+def _round_up(n: int, step: int) -> int:
+    return -(-int(n) // step) * step
+
+
+def gram_shape(n_q: int, n_m: int, width: int) -> tuple[int, int]:
+    """The padded ``(rows, columns)`` of one product of ``n_q`` by ``n_m`` rows of ``width``:
+    multiples of :data:`GRAM_TILE`, the columns grown until ``rows * columns * width >=
+    GRAM_MIN_MNK`` (the database side is the long one in every caller)."""
+    rows = _round_up(max(n_q, 1), GRAM_TILE)
+    cols = _round_up(max(n_m, -(-GRAM_MIN_MNK // (rows * max(1, int(width))))), GRAM_TILE)
+    return rows, cols
+
+
+def _padded64(x: np.ndarray, rows: int) -> np.ndarray:
+    out = np.zeros((rows, x.shape[1]), dtype=np.float64)
+    out[: len(x)] = x
+    return out
+
+
+def gram_pairwise(queries: np.ndarray, database: np.ndarray, metric: str = "l2sq"
+                  ) -> np.ndarray:
+    """``(Q, M)`` float64 distances of two stacks of vectors through one matrix product.
+
+    ``l2sq`` is ``max(0, (|q|^2 - 2 q.r) + |r|^2)``, ``l2`` its root and
+    ``cosine`` ``1 - q.r`` (unit vectors), all in float64; the squared norms are
+    row-wise sums, the cross term a float64 BLAS product of zero-padded blocks
+    (:func:`gram_shape`), so one pair's value is the same whichever block, route
+    (single, batched, pairwise) or thread count computed it. It differs from the
+    broadcast difference (:func:`vector_rows`) by rounding only: at most a few
+    1e-15 for unit vectors (tests/test_learned_gram.py bounds it, with the rankings).
+    """
+    q = np.asarray(queries)
+    d = np.asarray(database)
+    n_q, n_m = len(q), len(d)
+    out = np.empty((n_q, n_m), dtype=np.float64)
+    if n_q == 0 or n_m == 0:
+        return out
+    width = q.shape[1]
+    if d.shape[1] != width:
+        raise LirisError("descriptors", f"query width {width} != database width {d.shape[1]}")
+    for a in range(0, n_q, GRAM_QUERY_ROWS):
+        qa = np.asarray(q[a : a + GRAM_QUERY_ROWS], dtype=np.float64)
+        for b in range(0, n_m, GRAM_DATABASE_ROWS):
+            db = np.asarray(d[b : b + GRAM_DATABASE_ROWS], dtype=np.float64)
+            rows, cols = gram_shape(len(qa), len(db), width)
+            cross = (_padded64(qa, rows) @ _padded64(db, cols).T)[: len(qa), : len(db)]
+            block = out[a : a + len(qa), b : b + len(db)]
+            if metric == "cosine":
+                np.subtract(1.0, cross, out=block)
+                continue
+            np.multiply(cross, -2.0, out=block)
+            block += np.add.reduce(qa * qa, axis=1)[:, None]
+            block += np.add.reduce(db * db, axis=1)[None, :]
+            np.maximum(block, 0.0, out=block)
+            if metric == "l2":
+                np.sqrt(block, out=block)
+    return out
