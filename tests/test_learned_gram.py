@@ -61,7 +61,7 @@ def assert_same_rankings(fast: np.ndarray, ref: np.ndarray) -> None:
         assert (np.diff(f_row[order])[gaps] > 0).all()
 
 
-@pytest.mark.parametrize("width", [3, 256, 8192])
+@pytest.mark.parametrize("width", [32, 256, 8192])
 @pytest.mark.parametrize("metric", ["l2sq", "l2", "cosine"])
 def test_gram_equals_broadcast_reference_on_random_unit_vectors(width, metric):
     rng = np.random.default_rng(width)

@@ -98,10 +98,23 @@ def _round_up(n: int, step: int) -> int:
 
 def gram_shape(n_q: int, n_m: int, width: int) -> tuple[int, int]:
     """The padded ``(rows, columns)`` of one product of ``n_q`` by ``n_m`` rows of ``width``:
-    multiples of :data:`GRAM_TILE`, the columns grown until ``rows * columns * width >=
-    GRAM_MIN_MNK`` (the database side is the long one in every caller)."""
-    rows = _round_up(max(n_q, 1), GRAM_TILE)
-    cols = _round_up(max(n_m, -(-GRAM_MIN_MNK // (rows * max(1, int(width))))), GRAM_TILE)
+    multiples of :data:`GRAM_TILE` with ``rows * columns * width >= GRAM_MIN_MNK``.
+
+    Short sides grow first, and two short ones to a square (a single pair of
+    256-d vectors is a 128 x 128 product, not 8 x 2048: less memory to zero).
+    """
+    width = max(1, int(width))
+    rows, cols = _round_up(max(n_q, 1), GRAM_TILE), _round_up(max(n_m, 1), GRAM_TILE)
+    need = -(-GRAM_MIN_MNK // width)  # rows * cols at least
+    if rows * cols >= need:
+        return rows, cols
+    side = _round_up(np.ceil(np.sqrt(need)), GRAM_TILE)
+    if rows < side and cols < side:
+        rows = side
+    if rows <= cols:
+        rows = max(rows, _round_up(-(-need // cols), GRAM_TILE))
+    else:
+        cols = max(cols, _round_up(-(-need // rows), GRAM_TILE))
     return rows, cols
 
 
