@@ -27,9 +27,9 @@ BLOCK_BYTES = 32 * 2**20
 GRAM_QUERY_ROWS = 256
 GRAM_DATABASE_ROWS = 1024
 #: every product is padded (zero rows) to multiples of GRAM_TILE rows and to at
-#: least this many multiply-adds: OpenBLAS computes small products (M N K up to 1e6)
-#: with a separate kernel, and one-row ones as a matrix-vector product, which round
-#: differently; above it an entry's value does not depend on the shape it came in
+#: least this many multiply-adds: OpenBLAS rounds one-row products and small ones
+#: (measured: M N K up to about 1e6) differently from large ones; above it an entry's
+#: value did not depend on the shape, position or subset it came in (4x margin)
 GRAM_MIN_MNK = 1 << 22
 GRAM_TILE = 8
 
@@ -133,10 +133,12 @@ def gram_pairwise(queries: np.ndarray, database: np.ndarray, metric: str = "l2sq
     ``l2sq`` is ``max(0, (|q|^2 - 2 q.r) + |r|^2)``, ``l2`` its root and
     ``cosine`` ``1 - q.r`` (unit vectors), all in float64; the squared norms are
     row-wise sums, the cross term a float64 BLAS product of zero-padded blocks
-    (:func:`gram_shape`), so one pair's value is the same whichever block, route
-    (single, batched, pairwise) or thread count computed it. It differs from the
-    broadcast difference (:func:`vector_rows`) by rounding only: at most a few
-    1e-15 for unit vectors (tests/test_learned_gram.py bounds it, with the rankings).
+    (:func:`gram_shape`), so one pair's value is the same whichever block or route
+    (single, batched, pairwise) computed it (with OpenBLAS, measured; another BLAS
+    may differ, and protocol 2's streamed count then detects it and counts again).
+    It differs from the broadcast difference (:func:`vector_rows`) by rounding
+    only: at most a few 1e-15 for unit vectors (tests/test_learned_gram.py bounds
+    it, with the rankings).
     """
     q = np.asarray(queries)
     d = np.asarray(database)
