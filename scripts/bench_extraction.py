@@ -4,7 +4,7 @@
 Usage::
 
     taskset -c 1 python scripts/bench_extraction.py [--scans DIR] [--rounds 7] [--json FILE]
-        [--descriptors scan-context,m2dp,esf]
+        [--descriptors scan-context,m2dp,esf,bevplace,overlap-transformer]
 
 On a shared machine absolute times move with the load, so each measurement
 alternates the current implementation and the previous one (the routes
@@ -20,7 +20,11 @@ Previous routes: Scan Context's sort-based voxel grid and the batched
 ``pairwise`` for one pair; M2DP's ``atan2`` route (float64 aligned cloud,
 float32 ``arctan2``, compiled binning: the previous release's default); ESF's
 ``esf_histogram_numpy`` (tracing and histograms), ``trace_lines_numpy``,
-``normalise_numpy`` and ``sample_triangles_previous`` (NumPy triplet geometry).
+``normalise_numpy`` and ``sample_triangles_previous`` (NumPy triplet geometry);
+BEVPlace++'s stride-1 convolutions as a product per tap then ``+=`` (today each
+tap's GEMM adds into the output itself, ``network._gemm_add``).
+OverlapTransformer has no previous route (both columns time today's code: the
+ratio shows the noise of the measurement).
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ from lidar_iris_eval.bench.extraction import (  # noqa: E402
     load_bin_scans,
 )
 from lidar_iris_eval.descriptors import get_descriptor  # noqa: E402
+from lidar_iris_eval.descriptors.bevplace import network as bev_network  # noqa: E402
 from lidar_iris_eval.descriptors.esf import descriptor as esf_module  # noqa: E402
 from lidar_iris_eval.descriptors.m2dp import descriptor as m2dp_module  # noqa: E402
 from lidar_iris_eval.descriptors.scan_context import descriptor as sc_module  # noqa: E402
@@ -58,6 +63,11 @@ def previous(name: str):
         module, attr, old = sc_module.voxel, "voxel_centroids", lambda *a, **k: None
     elif name == "m2dp":  # the atan2 route (route: atan2), which the fast route replaced
         module, attr, old = m2dp_module, "fast_route_applies", lambda params: False
+    elif name == "bevplace":  # a temporary product per tap, then +=
+        module, attr, old = bev_network, "_gemm_add", _product_then_add
+    elif name == "overlap-transformer":  # unchanged: today's code in both columns
+        yield
+        return
     else:  # NumPy histograms and tracing, NumPy normalisation, NumPy geometry recomputed
         swaps = [(esf_module, "esf_histogram", esf_module.esf_histogram_numpy),
                  (esf_module, "trace_lines", esf_module.trace_lines_numpy),
@@ -70,6 +80,10 @@ def previous(name: str):
         return
     with _swapped(module, attr, old):
         yield
+
+
+def _product_then_add(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    out += a @ b
 
 
 @contextlib.contextmanager
@@ -105,7 +119,7 @@ def measure(name: str, scans: list[np.ndarray], rounds: int, pair_calls: int) ->
     row = {"extract_ms": 1e3 * float(np.median(cur)),
            "previous_extract_ms": 1e3 * float(np.median(old))}
     row["extract_speedup"] = row["previous_extract_ms"] / row["extract_ms"]
-    row["published_cpp_extract_ms"] = CPP_FIGURES[name]["extract_ms"]
+    row["published_cpp_extract_ms"] = CPP_FIGURES.get(name, {}).get("extract_ms")
     if name == "scan-context":
         a, b = desc.compute(scans[0]), desc.compute(scans[1])
         one, other = a.reshape(1), b.reshape(1)
@@ -127,7 +141,8 @@ def main() -> None:
     parser.add_argument("--pair-calls", type=int, default=300)
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--descriptors", default="scan-context,m2dp,esf",
-                        help="comma-separated subset of scan-context,m2dp,esf")
+                        help="comma-separated subset of scan-context,m2dp,esf,bevplace,"
+                        "overlap-transformer")
     args = parser.parse_args()
     pinned = "not pinned"
     if hasattr(os, "sched_getaffinity"):

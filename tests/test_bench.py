@@ -143,3 +143,25 @@ def test_isolated_peak_memory_is_the_childs_own(tmp_path):
     assert held[-1] == 1.0
     assert result["ordered_pairs"] == 50 * 49
     assert 0 < result["peak_rss_bytes"] < 400 * 2**20
+
+
+def test_bench_runs_the_learned_methods(tmp_path):
+    """BEVPlace++ keeps feature sets (global vector, keypoints, local features), not a
+    stacked array: the report sizes them, hands them to the matching process as .npz, and
+    the Gram distances agree with the reference loop to rounding (1e-13)."""
+    frames = 16
+    path, _ = simulated_sequence(tmp_path, "tiny-mixed", frames, 256)
+    seq = open_sequence(path)
+    descs = [get_descriptor("overlap-transformer"), get_descriptor("bevplace")]
+    settings = BenchSettings(exclude=4, loop_pairs=40, loop_pool=12, kernel_queries=8,
+                             kernel_repeats=1)
+    with pytest.warns(Warning):  # the shipped random weights say so
+        report = run_benchmark(seq, descs, tmp_path, settings)
+    ot, bev = report["descriptors"]
+    assert ot["extraction"]["descriptor_bytes"] == 256 * 4
+    assert bev["extraction"]["descriptor_bytes"] > 8192 * 4  # + keypoints, local features
+    for e in (ot, bev):
+        assert e["loop"]["batched_equals_single"]
+        assert e["loop"]["reference"]["max_abs_diff"] <= 1e-13
+        assert e["protocol1"]["isolated"] and e["protocol2"]["isolated"]
+        assert e["protocol2"]["ordered_pairs"] == frames * (frames - 1)

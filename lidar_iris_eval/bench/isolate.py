@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
+from lidar_iris_eval.descriptors.features import RaggedFeatures
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,26 @@ class MatchingJob:
     radius: float
     pair_budget: int
     progress: bool
+
+
+def save_descriptors(stem, descs) -> str:
+    """Write a sequence's descriptors for a matching process: ``STEM.npy`` for a stack,
+    ``STEM.npz`` (the cache's flat arrays) for feature sets (BEVPlace++, GOSMatch, ...)."""
+    if isinstance(descs, RaggedFeatures):
+        path = f"{stem}.npz"
+        np.savez(path, **descs.to_arrays())
+    else:
+        path = f"{stem}.npy"
+        np.save(path, descs)
+    return path
+
+
+def load_descriptors(path: str):
+    """What :func:`save_descriptors` wrote."""
+    if str(path).endswith(".npz"):
+        with np.load(path) as arrays:
+            return RaggedFeatures.from_arrays({k: arrays[k] for k in arrays.files})
+    return np.load(path)
 
 
 def peak_rss_bytes() -> int:
@@ -64,7 +85,7 @@ def run_matching(job: MatchingJob) -> dict[str, Any]:
     from lidar_iris_eval.evaluation.protocol2 import protocol2
 
     start = time.perf_counter()
-    descs = np.load(job.descriptors_path)
+    descs = load_descriptors(job.descriptors_path)
     load_s = time.perf_counter() - start
     start = time.perf_counter()
     job.descriptor.pairwise(descs[:2], descs[:2])  # load compiled kernels

@@ -28,6 +28,13 @@ def sample_pairs(n: int, count: int, pool: int, rng: np.random.Generator) -> np.
     return np.stack([frames[i], frames[j]], axis=1)
 
 
+def _nbytes(descs) -> int:
+    """Bytes of a stack of descriptors or of feature sets (their flat arrays)."""
+    if hasattr(descs, "nbytes"):
+        return int(descs.nbytes)
+    return int(sum(np.asarray(v).nbytes for v in descs.to_arrays().values()))
+
+
 def extraction_summary(db) -> dict[str, Any]:
     """Per-scan ``compute`` time statistics in milliseconds."""
     ms = np.asarray(db.extract_s, dtype=np.float64) * 1e3
@@ -36,7 +43,7 @@ def extraction_summary(db) -> dict[str, Any]:
         "scans": len(ms), "median_ms": med, "q1_ms": q1, "q3_ms": q3, "p10_ms": p10,
         "p90_ms": p90, "mean_ms": float(ms.mean()), "max_ms": float(ms.max()),
         "read_median_ms": float(np.median(db.read_s) * 1e3), "from_cache": db.from_cache,
-        "descriptor_bytes": int(db.descriptors.nbytes // max(1, len(db))),
+        "descriptor_bytes": int(_nbytes(db.descriptors) // max(1, len(db))),
     }
 
 

@@ -13,7 +13,12 @@ import numpy as np
 
 from lidar_iris_eval import __version__
 from lidar_iris_eval.bench.bars import evaluate_bars
-from lidar_iris_eval.bench.isolate import MatchingJob, run_isolated, run_matching
+from lidar_iris_eval.bench.isolate import (
+    MatchingJob,
+    run_isolated,
+    run_matching,
+    save_descriptors,
+)
 from lidar_iris_eval.bench.measure import (
     extraction_summary,
     kernel_throughput,
@@ -55,8 +60,7 @@ def bench_descriptor(seq, desc: Descriptor, cache: DescriptorCache, positions: n
         say(f"{desc.name}: per-pair loops on {len(pairs)} random pairs")
         entry["loop"] = loop_comparison(desc, descs, pairs, entry["kernel"])
     scratch.mkdir(parents=True, exist_ok=True)
-    path = scratch / f"{desc.name}-{os.getpid()}.npy"
-    np.save(path, descs)
+    path = Path(save_descriptors(scratch / f"{desc.name}-{os.getpid()}", descs))
     del db, descs
     try:
         for protocol in settings.protocols:

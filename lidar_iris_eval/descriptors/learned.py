@@ -16,7 +16,6 @@ A subclass sets ``network`` (a module with ``random_weights(seed)`` and
 
 from __future__ import annotations
 
-import functools
 import hashlib
 from pathlib import Path
 from types import ModuleType
@@ -26,7 +25,7 @@ import numpy as np
 
 from lidar_iris_eval.descriptors import checkpoint
 from lidar_iris_eval.descriptors.base import Descriptor
-from lidar_iris_eval.descriptors.vector_common import pairwise_blocks, vector_rows
+from lidar_iris_eval.descriptors.vector_common import gram_pairwise
 from lidar_iris_eval.errors import LirisError, warn
 
 #: ``weights`` value of the shipped deterministic random weights (not a trained model)
@@ -83,7 +82,6 @@ class LearnedVectorDescriptor(Descriptor):
                              f"{', '.join(METRICS)}, got {self.params.metric!r}")
         self._weights: dict | None = None
         self._digest: str | None = None
-        self._kernel = functools.partial(vector_rows, metric=self.params.metric)
 
     def __getstate__(self) -> dict:
         """Picklable (worker processes) without the weights: reloaded on use."""
@@ -147,12 +145,19 @@ class LearnedVectorDescriptor(Descriptor):
 
     # ------------------------------------------------------------------ distances
 
+    # All three routes are one :func:`gram_pairwise` call (a BLAS product on padded
+    # blocks), so a pair's distance is the same bits whichever route computed it.
+
     def distance(self, query: np.ndarray, candidate: np.ndarray) -> tuple[float, float]:
-        return float(self._kernel(query, np.asarray(candidate)[None, :])[0]), float("nan")
+        d = gram_pairwise(np.asarray(query)[None, :], np.asarray(candidate)[None, :],
+                          self.params.metric)
+        return float(d[0, 0]), float("nan")
 
     def distances(self, query: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d = self._kernel(query, database).reshape(len(database))
-        return d, np.full(len(database), np.nan)
+        database = np.asarray(database)
+        d = gram_pairwise(np.asarray(query)[None, :], database, self.params.metric)
+        return d.reshape(len(database)), np.full(len(database), np.nan)
 
     def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return pairwise_blocks(self._kernel, queries, database)
+        d = gram_pairwise(queries, database, self.params.metric)
+        return d, np.full(d.shape, np.nan)

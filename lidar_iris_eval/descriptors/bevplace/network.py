@@ -42,6 +42,7 @@ import functools
 
 import numpy as np
 from scipy import sparse
+from scipy.linalg import blas
 
 ROTATIONS, CLUSTERS, DIM = 8, 64, 128
 BN_EPS, NORM_EPS, CUBIC_A = 1e-5, 1e-12, -0.75
@@ -198,13 +199,33 @@ def warp(x: np.ndarray, theta: tuple[float, ...], size_out: tuple[int, int]) -> 
 # ------------------------------------------------------------------ encoder
 
 
+def _gemm_add(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    """``out += a @ b`` for C-contiguous float32 ``out``, ``a``, ``b``, with no temporary.
+
+    BLAS ``sgemm`` with ``beta = 1`` on the transposes (C-contiguous is Fortran
+    order transposed, so no copy): ``out.T += b.T @ a.T``. Falls back to the
+    product and ``+=`` if the wrapper would have copied ``out``.
+    """
+    target = out.T
+    if out.dtype == a.dtype == b.dtype == np.float32 and target.flags.f_contiguous \
+            and a.flags.c_contiguous and b.flags.c_contiguous:
+        done = blas.sgemm(1.0, b.T, a.T, beta=1.0, c=target, overwrite_c=True)
+        if np.shares_memory(done, out):
+            return
+    out += a @ b
+
+
 def _conv(x: np.ndarray, kernel: np.ndarray, stride: int, pad: int) -> np.ndarray:
     """2-D convolution of ``(N, H, W, C)`` by ``(out, C, k, k)``, no bias.
 
     Stride 1 (14 of the 17 convolutions): one GEMM per tap on contiguous slices
     of the flattened padded batch (a tap is a fixed offset ``i * W_pad + j``
     there), summed, then the valid rows kept: no im2col copy, whose scattered
-    writes cost 7x the GEMMs. Strided ones: im2col and one GEMM.
+    writes cost 7x the GEMMs. Each tap's GEMM adds into the output itself
+    (:func:`_gemm_add`, BLAS ``beta = 1``): the same sums as a product then
+    ``+=`` (bit for bit, tests/test_bevplace.py), without the temporary and its
+    extra pass (stride-1 convolutions 1.1-1.2x faster). Strided ones: im2col
+    and one GEMM.
     """
     n, h, w, c = x.shape
     c_out, _, k, _ = kernel.shape
@@ -220,7 +241,7 @@ def _conv(x: np.ndarray, kernel: np.ndarray, stride: int, pad: int) -> np.ndarra
         for i in range(k):
             for j in range(k):
                 off = i * wp + j
-                out[:span] += flat[off: off + span] @ taps[i, j]
+                _gemm_add(out[:span], flat[off: off + span], taps[i, j])
         return out.reshape(n, hp, wp, c_out)[:, :h_out, :w_out]
     # im2col: for each output pixel and kernel row, the k pixels of a padded row are
     # k * C contiguous floats, so the copy moves runs of k * C (not C) floats
