@@ -155,8 +155,7 @@ def test_bench_runs_the_learned_methods(tmp_path):
     descs = [get_descriptor("overlap-transformer"), get_descriptor("bevplace")]
     settings = BenchSettings(exclude=4, loop_pairs=40, loop_pool=12, kernel_queries=8,
                              kernel_repeats=1)
-    with pytest.warns(Warning):  # the shipped random weights say so
-        report = run_benchmark(seq, descs, tmp_path, settings)
+    report = run_benchmark(seq, descs, tmp_path, settings)  # the shipped trained weights
     ot, bev = report["descriptors"]
     assert ot["extraction"]["descriptor_bytes"] == 256 * 4
     assert bev["extraction"]["descriptor_bytes"] > 8192 * 4  # + keypoints, local features
