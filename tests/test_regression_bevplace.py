@@ -1,11 +1,12 @@
 """CI regression: BEVPlace++ on the built-in ``small-mixed`` sequence, shipped and random weights.
 
-Pins the README's BEVPlace++ table (E = 30, gt poses): protocol 1 AP, F1max,
+Pins the README's BEVPlace++ row (E = 30, gt poses): protocol 1 AP, F1max,
 R@100P and the median pose errors of the true top-1 matches, protocol 2 AP and
-F1max, for the shipped simulated-world weights and for ``random-init``, so a
-change of the BEV image, the network, the pose or the shipped file shows up
-here and must update the README (and MODEL_CARD.md) with it. About 10 minutes
-a preset on one thread.
+F1max, for the shipped simulated-world weights, so a change of the BEV image,
+the network, the pose or the shipped file shows up here and must update the
+README (and MODEL_CARD.md) with it. About 3-4 minutes on one thread; the
+``random-init`` figures (model card) are not run here, to keep CI's time
+(the shipped file's golden descriptors are pinned in test_bevplace_weights.py).
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 #: median rotation deg), then protocol 2 (AP, F1max)
 README_BEVPLACE = {
     "paper": (0.794, 0.826, 0.369, 0.976, 0.66, 0.88, 0.567, 0.529),
-    "random-init": (0.210, 0.387, 0.015, 0.914, 0.81, 1.00, 0.263, 0.312),
 }
 
 
@@ -36,7 +36,7 @@ def bevplace_rows(tmp_path_factory):
     root = tmp_path_factory.mktemp("bevplace-small-mixed")
     seq = simulate_sequence(root / "seq", preset="small-mixed")
     rows = {}
-    for name in ("bevplace", "bevplace:random-init"):  # one preset of a method per run
+    for name in ("bevplace",):
         run = root / name.replace(":", "-")
         main(["eval", str(seq), "--protocol", "1", "--protocol", "2", "--descriptor", name,
               "--cache-dir", str(root / "cache"), "--out", str(run), "--quiet"])
@@ -67,8 +67,6 @@ def test_the_readme_prints_the_pinned_row(preset):
     assert cells[:8] == [format(v, f) for v, f in zip(want, fmt, strict=True)]
 
 
-def test_shipped_weights_beat_the_random_ones_and_say_so(bevplace_rows):
-    shipped, rand = bevplace_rows[("paper", 1)], bevplace_rows[("random-init", 1)]
-    assert shipped["ap"] > rand["ap"] and shipped["f1_max"] > rand["f1_max"]
+def test_the_shipped_weights_say_what_they_are(bevplace_rows):
+    shipped = bevplace_rows[("paper", 1)]
     assert shipped["weights"] == "bevplace_sim_weights.npz" and shipped["weights_trained"]
-    assert rand["weights"] == "random-init" and not rand["weights_trained"]

@@ -1,11 +1,12 @@
 """CI regression: OverlapTransformer on the built-in ``small-mixed`` sequence, shipped and
 random weights.
 
-Pins the README's OverlapTransformer table (E = 30, gt poses): protocol 1 and protocol 2
-AP, F1max and R@100P for liris' simulated-world weights (``ot_sim_weights.npz``) and for
-``random-init``, so a change of the range image, the network or the shipped file shows
-up here and must update the README (and MODEL_CARD.md) with it. The independent check
-beside the pins: the trained weights beat the random ones on both protocols.
+Pins the README's OverlapTransformer row (E = 30, gt poses): protocol 1 and protocol 2
+AP, F1max and R@100P for liris' simulated-world weights (``ot_sim_weights.npz``), so a
+change of the range image, the network or the shipped file shows up here and must update
+the README (and MODEL_CARD.md) with it. The independent check beside the pins: the
+trained weights beat the model card's ``random-init`` figures (AP 0.140 / 0.164), which
+are not rerun here to keep CI's time.
 """
 
 from __future__ import annotations
@@ -23,10 +24,9 @@ pytestmark = pytest.mark.slow
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
-#: the README's OverlapTransformer table: protocol 1 (AP, F1max, R@100P), then protocol 2
+#: the README's OverlapTransformer row: protocol 1 (AP, F1max, R@100P), then protocol 2
 README_OT = {
     "paper": (0.439, 0.522, 0.113, 0.378, 0.388, 0.005),
-    "random-init": (0.140, 0.339, 0.005, 0.164, 0.223, 0.001),
 }
 
 
@@ -35,8 +35,7 @@ def ot_rows(tmp_path_factory):
     root = tmp_path_factory.mktemp("ot-small-mixed")
     seq = simulate_sequence(root / "seq", preset="small-mixed")
     rows = {}
-    for preset, extra in (("paper", []),
-                          ("random-init", ["--param", "overlap-transformer.weights=random-init"])):
+    for preset, extra in (("paper", []),):
         run = root / preset
         main(["eval", str(seq), "--protocol", "1", "--protocol", "2", "--descriptor",
               "overlap-transformer", *extra, "--cache-dir", str(root / "cache"),
@@ -63,10 +62,13 @@ def test_the_readme_prints_the_pinned_row(preset):
     assert cells[:6] == [format(v, ".3f") for v in README_OT[preset]]
 
 
+#: the model card's random-init figures on the same sequence: (P1, P2) AP and F1max
+RANDOM_INIT = {1: (0.140, 0.339), 2: (0.164, 0.223)}
+
+
 def test_trained_weights_beat_the_random_ones_and_say_so(ot_rows):
-    for protocol in (1, 2):
-        trained, rand = ot_rows[("paper", protocol)], ot_rows[("random-init", protocol)]
-        assert trained["ap"] > rand["ap"] and trained["f1_max"] > rand["f1_max"]
+    for protocol, (ap, f1) in RANDOM_INIT.items():
+        trained = ot_rows[("paper", protocol)]
+        assert trained["ap"] > ap and trained["f1_max"] > f1
     assert ot_rows[("paper", 1)]["weights"] == "ot_sim_weights.npz"
     assert ot_rows[("paper", 1)]["weights_trained"]
-    assert not ot_rows[("random-init", 1)]["weights_trained"]
