@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from lidar_iris_eval.descriptors.vector_common import vector_rows
+
 
 def prepare(record, params=None) -> np.ndarray:
     """Per-frame preparation: the float64 vector."""
@@ -17,10 +19,7 @@ def prepare(record, params=None) -> np.ndarray:
 
 
 def reference_distance(a, b, params=None) -> tuple[float, int]:
-    """``(distance of the params' metric, -1)``: no shift is estimated."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    metric = getattr(params, "metric", "l2sq")
-    if metric == "cosine":
-        return float(1.0 - np.dot(a, b)), -1
-    sq = float(np.sum((a - b) ** 2))
-    return (sq if metric == "l2sq" else float(np.sqrt(sq))), -1
+    """``(distance of the params' metric, -1)``: no shift is estimated. The plain
+    difference is :func:`~lidar_iris_eval.descriptors.vector_common.vector_rows`, the
+    kernel these methods used before the Gram route."""
+    return float(vector_rows(a, b, getattr(params, "metric", "l2sq"))), -1
