@@ -100,14 +100,12 @@ def scores(desc: np.ndarray, positions: np.ndarray, radius: float, exclude: int
         top.append(sq[i, j])
         true.append(dist[i, j] < radius)
         has.append(bool((dist[i, :i - exclude] < radius).any()))
+    from lidar_iris_eval.evaluation.metrics import max_f1, pr_curve
+
     top, true, has = np.array(top, float), np.array(true, bool), np.array(has, bool)
-    order = np.argsort(top)
-    tp = np.cumsum(true[order])
-    fp = np.cumsum(~true[order])
-    prec = tp / np.maximum(tp + fp, 1)
-    rec = tp / max(has.sum(), 1)
-    f1 = np.where(prec + rec > 0, 2 * prec * rec / np.maximum(prec + rec, 1e-12), 0)
-    return {"f1max": float(f1.max()) if len(f1) else 0.0,
+    # liris' own PR curve (protocol 1, revisits as the denominator); 0 without a revisit
+    f1max = max_f1(pr_curve(top, true, int(has.sum())))[0] if has.any() else 0.0
+    return {"f1max": float(f1max),
             "recall_at_1": float((true & has).sum() / max(has.sum(), 1)),
             "queries_with_revisit": int(has.sum())}
 
