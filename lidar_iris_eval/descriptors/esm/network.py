@@ -40,6 +40,9 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 from scipy.spatial import cKDTree
 
 WEIGHTS_FILE = Path(__file__).with_name("esm_weights.npz")
@@ -73,8 +76,81 @@ class Arch:
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in raw.items()})
 
 
+def _f32(bits: int) -> np.float32:
+    """The float32 whose IEEE-754 bits are ``bits``."""
+    return np.array([bits], np.uint32).view(np.float32)[0]
+
+
+# glibc's expm1f (sysdeps/ieee754/flt-32/s_expm1f.c, fdlibm's float algorithm), its constants
+# by their bits
+_ONE, _HALF, _MHALF = np.float32(1.0), np.float32(0.5), np.float32(-0.5)
+_THREE, _SIX, _MONE = np.float32(3.0), np.float32(6.0), np.float32(-1.0)
+_LN2_HI, _LN2_LO, _INVLN2 = _f32(0x3F317180), _f32(0x3717F7D1), _f32(0x3FB8AA3B)
+_Q1, _Q2, _Q3 = _f32(0xBD088889), _f32(0x3AD00D01), _f32(0xB8A670CD)
+_Q4, _Q5 = _f32(0x36867E54), _f32(0xB457EDBB)
+_SATURATE = _f32(0x4195B844)  # 27 ln2: below -27 ln2, expm1f returns -1
+_HALF_LN2, _ONEHALF_LN2 = _f32(0x3EB17218), _f32(0x3F851592)
+_TINY = _f32(0x33000000)  # 2**-25: below, expm1f returns x
+
+
+@intrinsic
+def _bits_as_f32(typingctx, bits):  # pragma: no cover - compiled
+    """Reinterpret an int32 as a float32 (a bitcast LLVM can vectorise)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+    return types.float32(types.int32), codegen
+
+
+@numba.njit(inline="always")
+def _elu1(v: np.float32) -> np.float32:  # pragma: no cover - compiled
+    """ELU of one float32 whose negative branch is glibc's ``expm1f``, bit for bit.
+
+    The network's bits were fixed with numba's ``np.expm1``, a call into the C
+    library per element (about 9 ns, a branch on the sign each). This is the
+    same algorithm in the same float32 operations, computed without branches
+    (every path, then selects) so the loop vectorises: ~10x faster. Two
+    rewrites keep the bits: the reductions for k = 0 and k = -1 are the general
+    one with t = 0 and t = -1 (exact products), and adding k to the exponent
+    is a product by 2**k (exact: k >= -28, the result stays normal). Equal to
+    the C library's on every negative float32 (all 2**31 bit patterns checked
+    against numba's ``np.expm1`` with glibc 2.36; tests/test_esm_network_elu.py
+    checks a sample), and so independent of the platform's libm.
+    """
+    x = max(v, -_SATURATE)
+    ax = -x
+    kr = np.int32(_INVLN2 * x + _MHALF)
+    k = np.int32(0) if ax <= _HALF_LN2 else (np.int32(-1) if ax < _ONEHALF_LN2 else kr)
+    t = np.float32(k)
+    hi = x - t * _LN2_HI
+    lo = t * _LN2_LO
+    xr = hi - lo
+    c = (hi - xr) - lo
+    hfx = _HALF * xr
+    hxs = xr * hfx
+    r1 = _ONE + hxs * (_Q1 + hxs * (_Q2 + hxs * (_Q3 + hxs * (_Q4 + hxs * _Q5))))
+    t3 = _THREE - r1 * hfx
+    e = hxs * ((r1 - t3) / (_SIX - xr * t3))
+    r0 = xr - (xr * e - hxs)  # k == 0
+    e2 = (xr * (e - c) - c) - hxs
+    rm1 = _HALF * (xr - e2) - _HALF  # k == -1
+    y = (_ONE - (e2 - xr)) * _bits_as_f32((k + np.int32(127)) << np.int32(23))
+    rk = y - _ONE  # k <= -2
+    r = r0 if k == 0 else (rm1 if k == -1 else rk)
+    r = x if ax < _TINY else r
+    r = _MONE if ax >= _SATURATE else r
+    return r if v < 0 else v
+
+
+# error_model="numpy": no zero-division check in the loop, which would stop it vectorising
+@numba.njit(cache=True, error_model="numpy")
+def _elu_inplace(flat: np.ndarray) -> None:  # pragma: no cover - compiled
+    for i in range(flat.size):
+        flat[i] = _elu1(flat[i])
+
+
 @numba.njit(cache=True)
-def _elu_inplace(flat: np.ndarray) -> None:
+def _elu_inplace_libm(flat: np.ndarray) -> None:  # pragma: no cover - compiled
+    """The reference: the C library's ``expm1f`` per negative element."""
     for i in range(flat.size):
         v = flat[i]
         if v < 0:
@@ -82,7 +158,8 @@ def _elu_inplace(flat: np.ndarray) -> None:
 
 
 def elu(x: np.ndarray) -> np.ndarray:
-    """ELU (alpha 1), one numba pass over a float32 array (np.where costs 3 passes)."""
+    """ELU (alpha 1) of a float32 array, in place when it is contiguous float32; the
+    negative branch equals the C library's ``expm1f`` bit for bit (:func:`_elu1`)."""
     x = np.ascontiguousarray(x, dtype=np.float32)
     _elu_inplace(x.reshape(-1))
     return x
