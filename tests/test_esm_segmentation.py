@@ -8,6 +8,7 @@ import pytest
 from lidar_iris_eval.descriptors.esm.segmentation import (
     SegmentParams,
     euclidean_clusters,
+    grid_clusters,
     normalise,
     segment_scan,
     voxelise,
@@ -149,3 +150,40 @@ def test_euclidean_clusters_are_scipys_components_and_numbering():
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
         assert np.array_equal(euclidean_clusters(p, 0.4),
                               connected_components(graph, directed=False)[1])
+
+
+def _in_cells(p: np.ndarray, cell: float):
+    """Points sorted as local_map_clusters gives its coarse centroids: by cell, (i, j, k)."""
+    absolute = np.floor(p / cell).astype(np.int64)
+    origin = absolute.min(0)
+    cells = absolute - origin
+    order = np.lexsort((cells[:, 2], cells[:, 1], cells[:, 0]))
+    return p[order], cells[order], origin
+
+
+@pytest.mark.parametrize("radius, cell", [(0.4, 0.2), (0.3, 0.2), (0.2, 0.1), (0.5, 0.25)])
+def test_grid_clusters_equal_the_kdtree_clusters(radius, cell):
+    rng = np.random.default_rng(7)
+    for trial in range(30):
+        n = int(rng.integers(1, 1500))
+        p = rng.uniform(-3, rng.uniform(-2, 9.0), (n, 3)) + rng.uniform(-200, 200, 3)
+        if trial % 3 == 0:  # cell centres of a lattice: many pairs at exactly the radius
+            p = (np.floor(p / cell) + 0.5) * cell
+            p = np.unique(p, axis=0)
+            rng.shuffle(p)
+        p, cells, origin = _in_cells(p, cell)
+        assert np.array_equal(grid_clusters(p, cells, cell, radius, origin),
+                              euclidean_clusters(p, radius))
+    assert len(grid_clusters(np.zeros((0, 3)), np.zeros((0, 3), np.int64), cell, radius,
+                             np.zeros(3, np.int64))) == 0
+
+
+def test_grid_clusters_fall_back_on_a_huge_sparse_grid(monkeypatch):
+    from lidar_iris_eval.descriptors.esm import segmentation
+
+    p, cells, origin = _in_cells(np.array([[0.0, 0, 0], [0.1, 0, 0], [5e4, 5e4, 0]]), 0.2)
+    calls = []
+    monkeypatch.setattr(segmentation, "euclidean_clusters",
+                        lambda *a: calls.append(a) or euclidean_clusters(*a))
+    assert segmentation.grid_clusters(p, cells, 0.2, 0.4, origin).tolist() == [0, 0, 1]
+    assert len(calls) == 1

@@ -143,6 +143,23 @@ def short_maps(tmp_path_factory):
     return [f for f, _ in local_maps(lambda j: seq[j], np.asarray(seq.poses), s, 0, len(seq))]
 
 
+def test_local_map_clusters_equal_those_of_the_kdtree_route(short_maps, monkeypatch):
+    """Coarse voxels grown on their grid (grid_clusters) give the k-d tree's segments."""
+    from lidar_iris_eval.descriptors.esm import local_segments
+    from lidar_iris_eval.descriptors.esm.segmentation import euclidean_clusters
+
+    params = get_descriptor("esm").segment_params
+    assert params.cluster_voxel > 0
+    new = [local_map_clusters(f.points, params) for f in short_maps]
+    monkeypatch.setattr(local_segments, "grid_clusters",
+                        lambda pts, cells, cell, radius, origin: euclidean_clusters(pts, radius))
+    old = [local_map_clusters(f.points, params) for f in short_maps]
+    assert sum(len(m) for m in new) > 0
+    for a, b in zip(new, old, strict=True):
+        assert len(a) == len(b)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
 def test_exact_cache_gives_the_uncached_features(short_maps):
     feats = {}
     counts = {}

@@ -24,6 +24,7 @@ import numpy as np
 from lidar_iris_eval.descriptors.esm.segmentation import (
     SegmentParams,
     euclidean_clusters,
+    grid_clusters,
     normalise,
     resample,
 )
@@ -125,13 +126,19 @@ def local_map_clusters(world_points: np.ndarray, params: SegmentParams) -> list[
     if params.cluster_voxel > 0:
         i, j, k = (np.floor(kept[:, a] / params.cluster_voxel).astype(np.int64)
                    for a in range(3))
-        i, j, k = i - i.min(), j - j.min(), k - k.min()
+        origin = np.array([i.min(), j.min(), k.min()])
+        i, j, k = i - origin[0], j - origin[1], k - origin[2]
         # one int64 per coarse voxel, in the lexicographic (i, j, k) order of the rows
-        flat = (i * (int(j.max()) + 1) + j) * (int(k.max()) + 1) + k
-        _, coarse, n_fine = np.unique(flat, return_inverse=True, return_counts=True)
+        span_j, span_k = int(j.max()) + 1, int(k.max()) + 1
+        flat = (i * span_j + j) * span_k + k
+        uniq, coarse, n_fine = np.unique(flat, return_inverse=True, return_counts=True)
         # sums accumulated in row order, as np.add.at does
         sums = np.stack([np.bincount(coarse, kept[:, a], len(n_fine)) for a in range(3)], 1)
-        comp_coarse = euclidean_clusters(sums / n_fine[:, None], params.radius)
+        # each coarse centroid lies in its coarse voxel: grown on that grid
+        cells = np.stack([uniq // (span_j * span_k), (uniq // span_k) % span_j, uniq % span_k],
+                         1)
+        comp_coarse = grid_clusters(sums / n_fine[:, None], cells, params.cluster_voxel,
+                                    params.radius, origin)
         counts = np.bincount(comp_coarse)
         comp = comp_coarse[coarse]
     else:

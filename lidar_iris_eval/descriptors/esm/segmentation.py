@@ -157,6 +157,107 @@ def _components(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: 
     return out
 
 
+#: :func:`grid_clusters` holds a dense table of grid columns up to this many (or 4 per point)
+DENSE_GRID_COLUMNS = 1 << 22
+
+
+def grid_clusters(points: np.ndarray, cells: np.ndarray, cell: float, radius: float,
+                  origin: np.ndarray) -> np.ndarray:
+    """:func:`euclidean_clusters` of points that each lie in a known cell of a grid.
+
+    ``cells`` (n, 3) int64 are the points' cell indices on a grid of ``cell``
+    m minus ``origin`` (so >= 0), rows sorted lexicographically (as
+    ``np.unique`` of packed keys gives them), each point inside its cell up to
+    rounding (a coarse voxel's centroid). A point's partners within ``radius``
+    then lie in the cells its ``radius`` box touches (widened by 1e-6 cell for
+    the rounding); only those are read. Pairs are tested with cKDTree's
+    arithmetic (squared distance summed x, y, z, ``<= radius**2``) and joined
+    by the same union-find, so the labels equal :func:`euclidean_clusters`'
+    (components numbered by their smallest point) without a tree to build nor
+    pairs to list. Falls back to :func:`euclidean_clusters` when the grid has
+    too many columns to tabulate.
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(pts)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.ascontiguousarray(cells, dtype=np.int64)
+    rows, width = int(cells[:, 0].max()) + 1, int(cells[:, 1].max()) + 1
+    if cells.min() < 0 or rows * width > max(4 * n, DENSE_GRID_COLUMNS):
+        return euclidean_clusters(pts, radius)
+    return _grid_components(pts, cells, rows, width, float(cell), float(radius),
+                            np.asarray(origin, dtype=np.int64))
+
+
+@numba.njit(cache=True)
+def _grid_components(pts: np.ndarray, cells: np.ndarray, rows: int, width: int, cell: float,
+                     radius: float, origin: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """Labels of :func:`grid_clusters`: each point against the later points of the
+    cells its radius box touches (each pair once), union-find as in :func:`_components`."""
+    n = len(pts)
+    r2 = radius * radius
+    margin = 1e-6
+    col = cells[:, 0] * width + cells[:, 1]
+    start = np.full(rows * width, -1, np.int64)  # rows are sorted: a column is one run
+    stop = np.zeros(rows * width, np.int64)
+    for a in range(n):
+        c = col[a]
+        if start[c] < 0:
+            start[c] = a
+        stop[c] = a + 1
+    parent = np.arange(n)
+    for a in range(n):
+        xa, ya, za = pts[a, 0], pts[a, 1], pts[a, 2]
+        ia, ja = cells[a, 0], cells[a, 1]
+        i_hi = min(int(np.floor((xa + radius) / cell + margin)) - origin[0], rows - 1)
+        j_lo = max(int(np.floor((ya - radius) / cell - margin)) - origin[1], 0)
+        j_hi = min(int(np.floor((ya + radius) / cell + margin)) - origin[1], width - 1)
+        k_lo = int(np.floor((za - radius) / cell - margin)) - origin[2]
+        k_hi = int(np.floor((za + radius) / cell + margin)) - origin[2]
+        for i in range(ia, i_hi + 1):
+            for j in range(ja if i == ia else j_lo, j_hi + 1):
+                c = i * width + j
+                b0 = start[c]
+                if b0 < 0:
+                    continue
+                if i == ia and j == ja:
+                    b0 = a + 1
+                for b in range(b0, stop[c]):
+                    kb = cells[b, 2]
+                    if kb < k_lo:
+                        continue
+                    if kb > k_hi:
+                        break
+                    dx = xa - pts[b, 0]
+                    dy = ya - pts[b, 1]
+                    dz = za - pts[b, 2]
+                    if (dx * dx + dy * dy) + dz * dz <= r2:
+                        x = a
+                        while parent[x] != x:
+                            parent[x] = parent[parent[x]]
+                            x = parent[x]
+                        y = b
+                        while parent[y] != y:
+                            parent[y] = parent[parent[y]]
+                            y = parent[y]
+                        if x < y:
+                            parent[y] = x
+                        elif y < x:
+                            parent[x] = y
+    label = np.full(n, -1, np.int64)
+    out = np.empty(n, np.int64)
+    nxt = 0
+    for i in range(n):
+        x = i
+        while parent[x] != x:
+            x = parent[x]
+        if label[x] < 0:
+            label[x] = nxt
+            nxt += 1
+        out[i] = label[x]
+    return out
+
+
 def yaw_align(centred: np.ndarray) -> np.ndarray:
     """Turn a zero-centred segment about z so its horizontal principal axis is +x.
 
