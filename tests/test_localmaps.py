@@ -178,3 +178,19 @@ def test_incremental_grid_equals_a_rebuild_from_raw_points(compact):
             assert g.stored_voxels() == sum(len(c.keys) for c in g.scans)
             assert all(np.isin(c.keys, g.keys).all() for c in g.scans)
     assert cropped_some
+
+
+def test_compiled_crop_test_equals_the_numpy_expression():
+    from lidar_iris_eval.localmaps.grid import _BITS, _MASK, _OFFSET, VoxelWindow
+
+    rng = np.random.default_rng(3)
+    g = VoxelWindow(5, 0.1, 7.3)
+    keys = encode(rng.integers(-120, 120, (20000, 3)))
+    keys = np.concatenate([keys, encode(np.array([[73, 0, 0], [-74, 0, 5], [0, 72, 1]]))])
+    for centre in (np.array([0.0, 0.0]), np.array([0.35, -1.05])):
+        k = keys
+        dx = (((k >> (2 * _BITS)) & _MASK) - _OFFSET + 0.5) * 0.1 - centre[0]
+        dy = (((k >> _BITS) & _MASK) - _OFFSET + 0.5) * 0.1 - centre[1]
+        ref = dx * dx + dy * dy <= 7.3**2
+        assert 0 < ref.sum() < len(ref)
+        assert np.array_equal(g._inside(keys, centre), ref)

@@ -22,6 +22,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 _BITS = 21
@@ -249,17 +250,27 @@ class VoxelWindow:
     # ------------------------------------------------------------------ helpers
 
     def _inside(self, keys: np.ndarray, centre_xy: np.ndarray) -> np.ndarray:
-        k = np.asarray(keys, dtype=np.int64)
-        v = self.voxel_mm / 1000.0
         c = np.asarray(centre_xy, dtype=np.float64)
-        # the two horizontal voxel indices only (decode's first two columns)
-        dx = (((k >> (2 * _BITS)) & _MASK) - _OFFSET + 0.5) * v - c[0]
-        dy = (((k >> _BITS) & _MASK) - _OFFSET + 0.5) * v - c[1]
-        return dx * dx + dy * dy <= self.radius**2
+        return _inside_xy(np.ascontiguousarray(keys, dtype=np.int64), self.voxel_mm / 1000.0,
+                          float(c[0]), float(c[1]), float(self.radius**2))
 
     def _keep(self, mask: np.ndarray) -> None:
         self.keys, self.cols = self.keys[mask], [c[mask] for c in self.cols]
         self._zeros = False
+
+
+@numba.njit(cache=True)
+def _inside_xy(keys: np.ndarray, v: float, cx: float, cy: float,
+               r2: float) -> np.ndarray:  # pragma: no cover - compiled
+    """Voxel centres (horizontal indices of the keys) within ``sqrt(r2)`` of (cx, cy),
+    with the float64 operations of NumPy's expression, in one pass."""
+    out = np.empty(len(keys), np.bool_)
+    for t in range(len(keys)):
+        k = keys[t]
+        dx = (((k >> (2 * _BITS)) & _MASK) - _OFFSET + 0.5) * v - cx
+        dy = (((k >> _BITS) & _MASK) - _OFFSET + 0.5) * v - cy
+        out[t] = dx * dx + dy * dy <= r2
+    return out
 
 
 class LocalMap:
