@@ -160,6 +160,21 @@ def test_local_map_clusters_equal_those_of_the_kdtree_route(short_maps, monkeypa
         assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
 
 
+def test_compiled_ground_mask_equals_the_numpy_one(short_maps):
+    from lidar_iris_eval.descriptors.esm.local_segments import (
+        local_ground_mask,
+        local_ground_mask_reference,
+    )
+
+    params = get_descriptor("esm").segment_params
+    for f in short_maps:
+        for cell in (params.ground_cell, 0.35):
+            mask = local_ground_mask(f.points, cell, params.ground_clearance)
+            assert 0 < mask.sum() < len(mask)
+            assert np.array_equal(mask, local_ground_mask_reference(f.points, cell,
+                                                                    params.ground_clearance))
+
+
 def test_exact_cache_gives_the_uncached_features(short_maps):
     feats = {}
     counts = {}

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 
+import numba
 import numpy as np
 
 from lidar_iris_eval.descriptors.esm.segmentation import (
@@ -51,8 +52,78 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) == 0:
         return np.zeros(0, bool)
-    # column by column: NumPy's reductions and ufuncs over an (n, 2) slice are several
-    # times slower than over its columns
+    # compiled (one pass per step instead of NumPy's ~20 over 250k voxels, and no
+    # ``np.minimum.at``); the same float64 operations, so the same mask
+    i, j, rows, width = _columns(pts[:, 0], pts[:, 1], float(cell))
+    rise = cell * np.tan(np.radians(GROUND_MAX_SLOPE))
+    if rows * width > max(4 * len(pts), DENSE_COLUMNS):  # sparse columns: tiny cells
+        return _sparse_ground_mask(pts[:, 2], i * width + j, width, cell, clearance)
+    # a dense grid of columns (the map is a bounded cylinder): empty columns stay +inf,
+    # and inf + rise is inf, so they never lower a neighbour
+    steps = np.array([rise * np.hypot(di, dj) for di, dj in _NEIGHBOURS])
+    return _dense_ground_mask(i, j, np.ascontiguousarray(pts[:, 2]), rows, width, steps,
+                              float(clearance))
+
+
+#: the 8 neighbouring columns (row, column offsets) of :func:`local_ground_mask`
+_NEIGHBOURS = np.array([(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                        if di != 0 or dj != 0], np.int64)
+
+
+@numba.njit(cache=True)
+def _columns(x: np.ndarray, y: np.ndarray, cell: float) -> tuple:  # pragma: no cover
+    """Each point's column ``floor(x / cell)``, ``floor(y / cell)``, shifted to leave
+    a free border of one column, and the grid's size (rows, width)."""
+    n = len(x)
+    i = np.empty(n, np.int64)
+    j = np.empty(n, np.int64)
+    for t in range(n):
+        i[t] = np.int64(np.floor(x[t] / cell))
+        j[t] = np.int64(np.floor(y[t] / cell))
+    i_min, j_min = i.min(), j.min()
+    for t in range(n):
+        i[t] -= i_min - 1
+        j[t] -= j_min - 1
+    return i, j, int(i.max()) + 2, int(j.max()) + 2
+
+
+@numba.njit(cache=True)
+def _nan_min(a: float, b: float) -> float:  # pragma: no cover - compiled
+    """``np.minimum`` of two floats (NaN wins)."""
+    if np.isnan(a) or np.isnan(b):
+        return np.nan
+    return a if a <= b else b
+
+
+@numba.njit(cache=True)
+def _dense_ground_mask(i: np.ndarray, j: np.ndarray, z: np.ndarray, rows: int, width: int,
+                       steps: np.ndarray, clearance: float) -> np.ndarray:  # pragma: no cover
+    """:func:`local_ground_mask` on a dense grid of columns: each column's lowest z,
+    lowered by a neighbour's lowest plus its step (``steps`` in ``_NEIGHBOURS``
+    order), then z <= ground + clearance."""
+    lowest = np.full((rows, width), np.inf)
+    for t in range(len(z)):
+        lowest[i[t], j[t]] = _nan_min(lowest[i[t], j[t]], z[t])
+    ground = lowest.copy()
+    for a in range(1, rows - 1):
+        for b in range(1, width - 1):
+            g = ground[a, b]
+            for m in range(8):
+                g = _nan_min(g, lowest[a + _NEIGHBOURS[m, 0], b + _NEIGHBOURS[m, 1]]
+                             + steps[m])
+            ground[a, b] = g
+    out = np.empty(len(z), np.bool_)
+    for t in range(len(z)):
+        out[t] = z[t] <= ground[i[t], j[t]] + clearance
+    return out
+
+
+def local_ground_mask_reference(points: np.ndarray, cell: float,
+                                clearance: float) -> np.ndarray:
+    """:func:`local_ground_mask` in NumPy (the route before it was compiled; tests)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return np.zeros(0, bool)
     i = np.floor(pts[:, 0] / cell).astype(np.int64)
     j = np.floor(pts[:, 1] / cell).astype(np.int64)
     i -= i.min() - 1  # a free border for the neighbours
@@ -61,8 +132,6 @@ def local_ground_mask(points: np.ndarray, cell: float, clearance: float) -> np.n
     flat = i * width + j
     if rows * width > max(4 * len(pts), DENSE_COLUMNS):  # sparse columns: tiny cells
         return _sparse_ground_mask(pts[:, 2], flat, width, cell, clearance)
-    # a dense grid of columns (the map is a bounded cylinder): empty columns stay +inf,
-    # and inf + rise is inf, so they never lower a neighbour
     lowest = np.full(rows * width, np.inf)
     np.minimum.at(lowest, flat, pts[:, 2])
     lowest = lowest.reshape(rows, width)
