@@ -165,137 +165,25 @@ def elu(x: np.ndarray) -> np.ndarray:
     return x
 
 
-def neighbour_index_kdtree(points: np.ndarray, arch: Arch) -> list[np.ndarray]:
-    """:func:`neighbour_index` by a k-d tree per segment and layer (the reference:
-    its order among equally distant points is the one the shipped bits hold)."""
+def neighbour_index(points: np.ndarray, arch: Arch) -> list[np.ndarray]:
+    """Per layer, (S, R, K) indices of each representative point's dilated neighbours.
+
+    Layer ``l``'s representatives are the first ``reps[l]`` points and its
+    neighbours are taken among the previous layer's points (the first
+    ``reps[l-1]``, all points for the first layer): the ``K * D`` nearest by a
+    k-d tree (each point is its own nearest), every ``D``-th kept. This is not
+    learned, so training computes it with this same function and feeds the
+    indices to the framework; both forwards then differ only by rounding.
+    (A k-d tree per segment beat a brute-force float32 search 1.6x here.)
+    """
     pts = np.asarray(points, dtype=np.float64)
     out = []
     prev_n = pts.shape[1]
     for r, k, d in zip(arch.reps, arch.k, arch.dilation, strict=True):
         idx = np.empty((len(pts), r, k), dtype=np.int64)
         for s in range(len(pts)):
-            idx[s] = _kdtree_layer(pts[s], prev_n, r, k, d)
-        out.append(idx)
-        prev_n = r
-    return out
-
-
-def _kdtree_layer(pts: np.ndarray, prev_n: int, r: int, k: int, d: int) -> np.ndarray:
-    """(r, k) dilated neighbours of one segment's first ``r`` points among its first
-    ``prev_n`` by cKDTree."""
-    _, nn = cKDTree(pts[:prev_n]).query(pts[:r], k=k * d)
-    return nn.reshape(r, k * d)[:, ::d]
-
-
-#: two squared distances this close (relative) count as a tie for :func:`_brute_layer`
-TIE_RTOL = 1e-9
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _brute_layer(pts: np.ndarray, bits: np.ndarray, prev_n: int, r: int, k: int, d: int,
-                 out: np.ndarray, ambiguous: np.ndarray) -> None:  # pragma: no cover
-    """:func:`_kdtree_layer` for every segment by a sweep along x, ties flagged.
-
-    For each representative, the ``k * d + 1`` smallest squared distances in
-    the order (distance, index), kept in a sorted buffer; every ``d``-th of the
-    first ``k * d`` goes to ``out[s]``. Points are visited outwards from the
-    representative in x order and a side stops once its x gap alone exceeds
-    the buffer's largest distance (exact: a squared distance is never below
-    its x term), so ~1/3 of the points are looked at. cKDTree orders points
-    at equal distances by its traversal, which this does not reproduce, so
-    segment ``s`` is flagged in ``ambiguous`` (and recomputed by the tree) when
-    two neighbours next to each other in that order (the one past the last
-    included, so the cut) are at distances within ``TIE_RTOL`` but are not the
-    same point. Equal points (resampled segments repeat points) may come in
-    either order: their coordinates, and so their features at every layer, are
-    equal, so the network's output is the same.
-    """
-    m = k * d
-    n_keep = min(m + 1, prev_n)
-    dist = np.empty(n_keep)
-    nbr = np.empty(n_keep, np.int64)
-    for s in range(pts.shape[0]):
-        x = pts[s, :prev_n, 0]
-        order = np.argsort(x)
-        xs = x[order]
-        rank = np.empty(prev_n, np.int64)
-        rank[order] = np.arange(prev_n)
-        for q in range(r):
-            qx, qy, qz = pts[s, q, 0], pts[s, q, 1], pts[s, q, 2]
-            filled = 0
-            lo, hi = rank[q] - 1, rank[q]
-            while True:
-                thr = dist[n_keep - 1] if filled == n_keep else np.inf
-                gap_lo = qx - xs[lo] if lo >= 0 else np.inf
-                gap_hi = xs[hi] - qx if hi < prev_n else np.inf
-                if gap_hi <= gap_lo:
-                    if hi >= prev_n or gap_hi * gap_hi > thr:
-                        break
-                    j = order[hi]
-                    hi += 1
-                else:
-                    if gap_lo * gap_lo > thr:
-                        break
-                    j = order[lo]
-                    lo -= 1
-                dx, dy, dz = pts[s, j, 0] - qx, pts[s, j, 1] - qy, pts[s, j, 2] - qz
-                dd = (dx * dx + dy * dy) + dz * dz
-                if filled < n_keep:
-                    pos = filled
-                    filled += 1
-                elif dd < thr or (dd == thr and j < nbr[n_keep - 1]):
-                    pos = n_keep - 1
-                else:
-                    continue
-                while pos > 0 and (dist[pos - 1] > dd or (dist[pos - 1] == dd
-                                                          and nbr[pos - 1] > j)):
-                    dist[pos] = dist[pos - 1]
-                    nbr[pos] = nbr[pos - 1]
-                    pos -= 1
-                dist[pos] = dd
-                nbr[pos] = j
-            for i in range(1, n_keep):
-                a, b = nbr[i - 1], nbr[i]
-                if dist[i] - dist[i - 1] <= TIE_RTOL * dist[i] and (
-                        bits[s, a, 0] != bits[s, b, 0] or bits[s, a, 1] != bits[s, b, 1]
-                        or bits[s, a, 2] != bits[s, b, 2]):
-                    ambiguous[s] = True
-            for i in range(k):
-                out[s, q, i] = nbr[i * d]
-
-
-def neighbour_index(points: np.ndarray, arch: Arch) -> list[np.ndarray]:
-    """Per layer, (S, R, K) indices of each representative point's dilated neighbours.
-
-    Layer ``l``'s representatives are the first ``reps[l]`` points and its
-    neighbours are taken among the previous layer's points (the first
-    ``reps[l-1]``, all points for the first layer): the ``K * D`` nearest
-    (each point is its own nearest), every ``D``-th kept. This is not
-    learned, so training computes it with this same function and feeds the
-    indices to the framework; both forwards then differ only by rounding.
-
-    The shipped bits come from a k-d tree per segment and layer
-    (:func:`neighbour_index_kdtree`); building ~50 small trees per frame cost
-    more than the search, so a compiled brute force (:func:`_brute_layer`)
-    gives the neighbours, and only a segment with distinct points at tied
-    distances (where the tree's order is its own) goes back to the tree. The
-    indices may differ from the tree's only among equal points, which leaves
-    every feature bit unchanged (tests/test_esm_network_neighbours.py).
-    """
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    bits = pts.view(np.uint64)
-    out = []
-    prev_n = pts.shape[1]
-    for r, k, d in zip(arch.reps, arch.k, arch.dilation, strict=True):
-        idx = np.empty((len(pts), r, k), dtype=np.int64)
-        if k * d > prev_n:  # the tree pads with missing neighbours; keep its answer
-            for s in range(len(pts)):
-                idx[s] = _kdtree_layer(pts[s], prev_n, r, k, d)
-        else:
-            ambiguous = np.zeros(len(pts), bool)
-            _brute_layer(pts, bits, prev_n, r, k, d, idx, ambiguous)
-            for s in np.nonzero(ambiguous)[0]:
-                idx[s] = _kdtree_layer(pts[s], prev_n, r, k, d)
+            _, nn = cKDTree(pts[s, :prev_n]).query(pts[s, :r], k=k * d)
+            idx[s] = nn.reshape(r, k * d)[:, ::d]
         out.append(idx)
         prev_n = r
     return out
