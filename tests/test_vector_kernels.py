@@ -40,6 +40,18 @@ def test_equals_numpy_rows(width, dtype):
         assert np.array_equal(pair_distances(q[3:4], d[10:30], metric), got[3:4, 10:30])
 
 
+def test_serial_and_parallel_launches_equal(monkeypatch):
+    from lidar_iris_eval.descriptors import vector_kernels
+
+    rng = np.random.default_rng(3)
+    q, d = _rows(rng, 70, 640, np.float32), _rows(rng, 90, 640, np.float32)
+    monkeypatch.setattr(vector_kernels, "PARALLEL_MIN_PAIRS", 0)
+    par = pair_distances(q, d, "l1")
+    monkeypatch.setattr(vector_kernels, "PARALLEL_MIN_PAIRS", 1 << 30)
+    assert np.array_equal(par, pair_distances(q, d, "l1"))
+    assert np.array_equal(par, pairwise_blocks(l1_rows, q, d)[0])
+
+
 def test_descriptors_use_it_and_agree_with_distance():
     rng = np.random.default_rng(7)
     for name, width, dtype in (("m2dp", 192, np.float64), ("esf", 640, np.float32)):

@@ -37,6 +37,10 @@ METRIC_L1, METRIC_L2SQ, METRIC_L2 = 0, 1, 2
 METRICS = {"l1": METRIC_L1, "l2sq": METRIC_L2SQ, "l2": METRIC_L2}
 #: NumPy's pairwise-summation block (``PW_BLOCKSIZE`` in its loops)
 _PW_BLOCK = 128
+#: fewer pairs than this are computed on the calling thread: a parallel launch must wait
+#: for every numba thread to be scheduled, which on a loaded machine cost ~8 ms a call
+#: (protocol 2 computes its positives in ~300 small calls)
+PARALLEL_MIN_PAIRS = 1 << 16
 #: queries per thread task and database rows per inner chunk: a chunk of the
 #: database (64 x 640 float32 = 160 kB at most) is reused by the 8 queries
 _TILE_Q = 8
@@ -108,36 +112,50 @@ def _plan_sum(t, leaves, program, stack):
     return stack[0]
 
 
+@nb.njit(cache=True, nogil=True)
+def _fill_rows(queries, database, metric, leaves, program, out, i0, i1, terms, stack):
+    """Pairs of query rows ``[i0, i1)`` with every database row, into ``out``.
+
+    Per pair the ``W`` terms go to ``terms`` (a plain vector loop), then
+    they are summed by NumPy's plan; ``0.0 +`` the sum is the reduction's start.
+    Database rows are walked in chunks, each reused by all the rows.
+    """
+    nd, width = database.shape
+    for j0 in range(0, nd, _TILE_M):
+        j1 = min(nd, j0 + _TILE_M)
+        for i in range(i0, i1):
+            q = queries[i]
+            for j in range(j0, j1):
+                r = database[j]
+                if metric == METRIC_L1:
+                    for k in range(width):
+                        terms[k] = abs(r[k] - q[k])
+                else:
+                    for k in range(width):
+                        d = r[k] - q[k]
+                        terms[k] = d * d
+                total = 0.0 + _plan_sum(terms, leaves, program, stack) if width else 0.0
+                out[i, j] = np.sqrt(total) if metric == METRIC_L2 else total
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _pair_block(queries, database, metric, leaves, program, out):
-    """Every pair of float64 ``queries`` (Q, W) and ``database`` (M, W) into ``out`` (Q, M).
-
-    Per pair the ``W`` terms go to a small buffer (a plain vector loop), then
-    they are summed by NumPy's plan; ``0.0 +`` the sum is the reduction's start.
-    """
+    """Every pair of float64 ``queries`` (Q, W) and ``database`` (M, W) into ``out`` (Q, M),
+    tiles of query rows on numba's threads."""
     nq, width = queries.shape
-    nd = database.shape[0]
     tiles = (nq + _TILE_Q - 1) // _TILE_Q
     for tile in nb.prange(tiles):
-        terms = np.empty(width)
-        stack = np.empty(len(program) + 1)
         i0 = tile * _TILE_Q
-        i1 = min(nq, i0 + _TILE_Q)
-        for j0 in range(0, nd, _TILE_M):
-            j1 = min(nd, j0 + _TILE_M)
-            for i in range(i0, i1):
-                q = queries[i]
-                for j in range(j0, j1):
-                    r = database[j]
-                    if metric == METRIC_L1:
-                        for k in range(width):
-                            terms[k] = abs(r[k] - q[k])
-                    else:
-                        for k in range(width):
-                            d = r[k] - q[k]
-                            terms[k] = d * d
-                    total = 0.0 + _plan_sum(terms, leaves, program, stack) if width else 0.0
-                    out[i, j] = np.sqrt(total) if metric == METRIC_L2 else total
+        _fill_rows(queries, database, metric, leaves, program, out, i0, min(nq, i0 + _TILE_Q),
+                   np.empty(width), np.empty(len(program) + 1))
+
+
+@nb.njit(cache=True, nogil=True)
+def _pair_block_serial(queries, database, metric, leaves, program, out):
+    """:func:`_pair_block` on this thread: the same code per pair, no parallel launch."""
+    nq, width = queries.shape
+    _fill_rows(queries, database, metric, leaves, program, out, 0, nq,
+               np.empty(width), np.empty(len(program) + 1))
 
 
 def pair_distances(queries: np.ndarray, database: np.ndarray, metric: str) -> np.ndarray:
@@ -154,5 +172,6 @@ def pair_distances(queries: np.ndarray, database: np.ndarray, metric: str) -> np
     out = np.empty((len(q), len(d)), dtype=np.float64)
     if len(q) and len(d):
         leaves, program = summation_plan(q.shape[1])
-        _pair_block(q, d, METRICS[metric], leaves, program, out)
+        kernel = _pair_block if out.size >= PARALLEL_MIN_PAIRS else _pair_block_serial
+        kernel(q, d, METRICS[metric], leaves, program, out)
     return out
