@@ -22,9 +22,11 @@ answers what its callers would otherwise decide by asking which kind it is:
 
 * ``imap_progress(fn, tasks, shared, tick, sizes)``: ``imap`` that moves a
   progress bar unit by unit in this process, task by task elsewhere;
-* ``run_blocks(fn, blocks, shared, warm_up)``: where a block pass runs (here
-  after ``warm_up``, or as cluster tasks) and ``returns_blocks()``, whether a
-  block task may return a whole block of distances;
+* ``run_blocks(fn, blocks, shared, warm_up, threaded)``: where a block pass
+  runs (here after ``warm_up``, on ``concurrency()`` threads when the
+  descriptor's blocks release the GIL, or as cluster tasks) and
+  ``returns_blocks()``, whether a block task may return a whole block of
+  distances;
 * ``concurrency()``: how many tasks run at once (1: a caller may do the work
   itself and share its state, e.g. a scan cache);
 * ``describe()`` and ``run_config()`` (``config.yaml``'s ``engine`` block).
@@ -87,17 +89,25 @@ class SerialExecutor:
         return 1
 
     def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
-                   warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
-        """The tasks of a block pass, as :meth:`imap` yields them: here, in order.
+                   warm_up: Callable[[], object] | None = None, threaded: bool = False
+                   ) -> Iterator[tuple[int, Any]]:
+        """The tasks of a block pass, as :meth:`imap` yields them: here, in task order.
 
         Blocks share one large descriptor array, which a local pool would copy
         into every worker, so every local executor runs them in this process.
-        ``warm_up`` is called at once (not when the first block is asked for),
-        so a caller that starts its clock after this call does not count the
-        kernels' compilation as matching cost.
+        ``threaded``: the tasks run on one thread each and release the GIL
+        (a descriptor's ``threaded_blocks``), so :meth:`concurrency` of them
+        run at once on threads of this process (one here: in order). Results
+        still come in task order, so what a caller folds them into does not
+        depend on the thread count. ``warm_up`` is called at once (not when
+        the first block is asked for), so a caller that starts its clock after
+        this call does not count the kernels' compilation as matching cost.
         """
         if warm_up is not None:
             warm_up()
+        threads = self.concurrency() if threaded else 1
+        if threads > 1 and len(tasks) > 1:
+            return _thread_map(fn, tasks, shared, threads)
         return SerialExecutor.imap(self, fn, tasks, shared)
 
     def returns_blocks(self) -> bool:
@@ -120,6 +130,33 @@ class SerialExecutor:
         cluster's block names its workers too (:meth:`DaskExecutor.run_config`).
         """
         return {"scheduler": self.scheduler}
+
+
+def _thread_map(fn: Callable, tasks: Sequence[tuple], shared: tuple, threads: int
+                ) -> Iterator[tuple[int, Any]]:
+    """``(index, fn(*shared, *tasks[index]))`` in task order, ``threads`` tasks at a time.
+
+    At most ``2 * threads`` tasks are submitted ahead of the one yielded
+    next, so results waiting for an earlier task stay few (a block of
+    distances is megabytes). A consumer that stops early (or an error)
+    cancels the queued tasks and waits only for the running ones.
+    """
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="liris-block")
+    pending: deque = deque()
+    try:
+        for index, task in enumerate(tasks):
+            pending.append((index, pool.submit(fn, *shared, *task)))
+            if len(pending) >= 2 * threads:
+                index_done, future = pending.popleft()
+                yield index_done, future.result()
+        while pending:
+            index_done, future = pending.popleft()
+            yield index_done, future.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def stop_pool(pool) -> None:
@@ -260,11 +297,13 @@ class DaskExecutor:
         return _tick_when_done(self.imap(fn, tasks, shared), tick, sizes)
 
     def run_blocks(self, fn: Callable, tasks: Sequence[tuple], shared: tuple = (),
-                   warm_up: Callable[[], object] | None = None) -> Iterator[tuple[int, Any]]:
+                   warm_up: Callable[[], object] | None = None, threaded: bool = False
+                   ) -> Iterator[tuple[int, Any]]:
         """The tasks of a block pass as cluster tasks (:meth:`imap`), in any order.
 
         ``warm_up`` is not called: nothing is matched in this process, and
-        each worker compiles its kernels on its first block.
+        each worker compiles its kernels on its first block. ``threaded`` is
+        not needed: the cluster's workers already run blocks side by side.
         """
         return self.imap(fn, tasks, shared)
 

@@ -24,7 +24,7 @@ from lidar_iris_eval.matching.blocks import best_matches
 class ReversedExecutor(SerialExecutor):
     """Runs block tasks as a cluster would: no warm-up, reductions only, last task first."""
 
-    def run_blocks(self, fn, tasks, shared=(), warm_up=None):
+    def run_blocks(self, fn, tasks, shared=(), warm_up=None, threaded=False):
         self.calls.append(len(tasks))
         return ((index, fn(*shared, *tasks[index])) for index in reversed(range(len(tasks))))
 
@@ -76,6 +76,52 @@ def test_distributed_stream_equals_serial(data):
     np.testing.assert_array_equal(got.query, np.flatnonzero(limits >= 0))
     np.testing.assert_array_equal(got.match, ref.match)
     np.testing.assert_array_equal(got.distance, ref.distance)
+
+
+class _ThreadedHist(ToyHist):
+    """ToyHist whose blocks a local executor may run on threads (as Scan Context's)."""
+
+    threaded_blocks = True
+
+
+def test_threaded_blocks_equal_serial_in_task_order(data):
+    descs, positions, limits = data
+    gt = compute_ground_truth(positions, 4.0, 1)
+    args = (descs, gt.pairs, gt.n_positive_pairs, limits, 300)
+    ref_aff, ref_curve, ref = stream_protocol2(ToyHist(), *args, storage="float32")
+    for executor in (local_executor(1), local_executor(2), local_executor(3)):
+        aff, curve, got = stream_protocol2(_ThreadedHist(), *args, storage="float32",
+                                           executor=executor)
+        np.testing.assert_array_equal(aff.matrix, ref_aff.matrix)
+        np.testing.assert_array_equal(curve.precision, ref_curve.precision)
+        np.testing.assert_array_equal(curve.recall, ref_curve.recall)
+        for key in ("query", "match", "distance", "yaw_deg"):
+            np.testing.assert_array_equal(getattr(got, key), getattr(ref, key))
+        assert got.n_evaluations == ref.n_evaluations
+
+
+def test_thread_map_keeps_task_order_and_bounds_its_lead():
+    import threading
+    import time
+
+    from lidar_iris_eval.executor import _thread_map
+
+    started: list[int] = []
+    lock = threading.Lock()
+
+    def task(i):
+        with lock:
+            started.append(i)
+        time.sleep(0.02 if i % 3 == 0 else 0.0)  # later tasks often finish first
+        return i * i
+
+    seen = []
+    for index, value in _thread_map(task, [(i,) for i in range(12)], (), 2):
+        assert len(started) <= index + 1 + 2 * 2  # never more than 2 x threads ahead
+        seen.append((index, value))
+    assert seen == [(i, i * i) for i in range(12)]
+    with pytest.raises(ZeroDivisionError):
+        list(_thread_map(lambda i: 1 // (i - 3), [(i,) for i in range(8)], (), 2))
 
 
 def test_executors_from_the_options():

@@ -106,6 +106,22 @@ def test_routes_equal_on_real_scans_and_rotated_copies(real_scans, preset):
     assert abs(s[0, 0] - 37.5) <= 1.5
 
 
+def test_serial_and_parallel_launches_equal(simulated, monkeypatch):
+    """A few pairs go to ``pair_block_serial``: the same tiles and pair code as the
+    parallel kernel, so the same bits whichever launch computed them."""
+    base = get_descriptor("lidar-iris")
+    descs = np.stack([base.compute(p) for p in simulated])
+    for search in SEARCHES:
+        for mode in MODES:
+            params = dataclasses.replace(base.params, shift_search=search, match_mode=mode)
+            monkeypatch.setattr(li, "PARALLEL_MIN_PAIRS", 0)
+            par = compare_blocks(descs, descs, params)
+            monkeypatch.setattr(li, "PARALLEL_MIN_PAIRS", 1 << 30)
+            ser = compare_blocks(descs, descs, params)
+            assert np.array_equal(par[0], ser[0], equal_nan=True)
+            assert np.array_equal(par[1], ser[1])
+
+
 @pytest.mark.parametrize("peaks", [1, 2, 3, 5])
 def test_band_peaks_rank_exact_ties_like_the_baseline(peaks):
     """A single harmonic k gives k exactly equal maxima: ties go to the lower column."""

@@ -159,6 +159,12 @@ class Descriptor(abc.ABC):
     #: holds the same scan (cache.py, row index). False by default, since a wrong True
     #: would serve numbers a fresh run does not give; ESM and MapClosures keep it False.
     per_frame: ClassVar[bool] = False
+    #: True when ``pairwise`` runs on one thread and spends its time in calls that
+    #: release the GIL (NumPy, BLAS, FFT on whole blocks): a local executor may then run
+    #: several blocks of a matching pass at once on threads of this process
+    #: (:meth:`~lidar_iris_eval.executor.SerialExecutor.run_blocks`). False for kernels
+    #: that already use every core (numba ``prange``) and for pure-Python ones.
+    threaded_blocks: ClassVar[bool] = False
     #: how figures and tables name the method (default: the registry name)
     label: ClassVar[str | None] = None
     #: its colour in every figure (default: a stable spare colour picked from its name)

@@ -384,7 +384,9 @@ def block_pass(descriptor: Descriptor, descriptors, blocks, reducers, executor=N
     descriptors queries are matched against (another session's); default the
     queries' own. ``executor`` (:mod:`lidar_iris_eval.executor`; default this
     process) decides where the blocks run (``run_blocks``): a local one in this
-    process, after warming the kernels up; Dask as tasks returning the reducers'
+    process, after warming the kernels up (on several threads when the
+    descriptor's ``threaded_blocks`` says its blocks release the GIL; merged
+    in block order all the same); Dask as tasks returning the reducers'
     parts only. Merges are exact and in block order here, so the results do not
     depend on the executor. Returns ``(evaluations, seconds)``: distances computed
     and matching wall time (without the untimed reducers' time spent in this
@@ -394,7 +396,8 @@ def block_pass(descriptor: Descriptor, descriptors, blocks, reducers, executor=N
     runner = _HERE if executor is None else executor
     shared = (descriptor, descriptors, database, tuple(reducers))
     results = runner.run_blocks(_block_task, blocks, shared,
-                                warm_up=lambda: warm_up(descriptor, descriptors))
+                                warm_up=lambda: warm_up(descriptor, descriptors),
+                                threaded=bool(getattr(descriptor, "threaded_blocks", False)))
     here = os.getpid()
     evaluations, untimed = 0, 0.0
     start = time.perf_counter()

@@ -65,7 +65,8 @@ import numpy as np
 
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.esf import kernels
-from lidar_iris_eval.descriptors.vector_common import finite_xyz, pairwise_blocks
+from lidar_iris_eval.descriptors.vector_common import finite_xyz
+from lidar_iris_eval.descriptors.vector_kernels import pair_distances
 from lidar_iris_eval.errors import LirisError
 
 GRID = 64
@@ -447,5 +448,8 @@ class ESF(Descriptor):
         return dists, np.full(len(database), np.nan)
 
     def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(Q, M)`` L1 distances, in blocks of queries to bound memory."""
-        return pairwise_blocks(l1_rows, queries, database)
+        """``(Q, M)`` L1 distances, each bitwise :func:`l1_rows`'s."""
+        # compiled, on every numba thread, bitwise :func:`l1_rows` (tests/test_vector_kernels.py)
+        queries, database = np.asarray(queries), np.asarray(database)
+        return pair_distances(queries, database, "l1"), np.full(
+            (len(queries), len(database)), np.nan)

@@ -495,6 +495,12 @@ def _fields(descs: np.ndarray, params: LidarIrisParams, source: str):
 DATABASE_CHUNK = 512
 
 
+#: fewer pairs than this are compared on the calling thread (``pair_block_serial``): a
+#: parallel launch waits for every numba thread to be scheduled, which on a loaded machine
+#: cost milliseconds of spinning per call; 4096 pairs are ~30 ms of work on one core
+PARALLEL_MIN_PAIRS = 4096
+
+
 #: comparison kernels by route: ``fast`` (the default) and ``baseline``, the previous
 #: kernel kept verbatim; tests assert they agree bitwise, benchmarks time one against the other
 ROUTES = {"fast": kernels, "baseline": kernels_baseline}
@@ -509,7 +515,7 @@ def compare_blocks(queries: np.ndarray, database: np.ndarray, params: LidarIrisP
     """
     if route not in ROUTES:
         raise LirisError("route", f"unknown LiDAR Iris kernel route {route!r} (fast|baseline)")
-    pair_block = ROUTES[route].pair_block
+    route_kernels = ROUTES[route]
     q = _fields(queries, params, "queries")
     # queries' columns repeated twice: any column roll is then a contiguous slice
     q = (np.concatenate([q[0], q[0]], axis=2), np.concatenate([q[1], q[1]], axis=2), *q[2:])
@@ -527,7 +533,10 @@ def compare_blocks(queries: np.ndarray, database: np.ndarray, params: LidarIrisP
         whole = k == nd
         part_d = out_d if whole else np.empty((nq, k))
         part_s = out_s if whole else np.empty((nq, k), dtype=np.int64)
-        pair_block(
+        # a few pairs (protocol 2's positives come in ~300 small calls) on this thread
+        few = nq * k < PARALLEL_MIN_PAIRS and hasattr(route_kernels, "pair_block_serial")
+        kernel = route_kernels.pair_block_serial if few else route_kernels.pair_block
+        kernel(
             *q, *d, cos_t, sin_t, p.shift_window, _MODES[p.match_mode],
             _SEARCHES[p.shift_search], p.refine_peaks, part_d, part_s,
         )  # fmt: skip

@@ -377,6 +377,42 @@ def _pair(t1d, m1d, sr1, si1, br1, bi1, t2, m2, sr2, si2, br2, bi2, cos_t, sin_t
     return dist[best_s], ((n - best_s) % n if swap else best_s)
 
 
+@nb.njit(cache=True, nogil=True)
+def _tile(qt, qm, qsr, qsi, qbr, qbi, dt, dm, dsr, dsi, dbr, dbi, cos_t, sin_t, cos_c, sin_c,
+          window, mode, search, peaks, out_d, out_s, tile, tiles_d):
+    """The pairs of one tile (``_TILE_Q`` queries x ``_TILE_M`` database entries)."""
+    nq = qt.shape[0]
+    nd = dt.shape[0]
+    nk = cos_t.shape[0]
+    n = cos_t.shape[1]
+    ncand = max(n, 2 * (2 * window + 1 + peaks))
+    tq = tile // tiles_d
+    td = tile % tiles_d
+    scratch = (
+        np.empty(nk),
+        np.empty(nk),
+        np.empty(n),
+        np.empty(ncand, np.int64),
+        np.empty(ncand, np.int64),
+        np.empty(ncand, np.int64),
+        np.empty(ncand, np.int64),
+        np.empty(n, np.bool_),
+        np.empty(n),
+        np.empty(max(peaks, 1), np.int64),
+        np.empty(max(peaks, 1) * (2 * _COARSE_STEP - 1), np.int64),
+        np.empty(max(peaks, 1) * (2 * _COARSE_STEP - 1)),
+    )
+    for j in range(td * _TILE_M, min(nd, (td + 1) * _TILE_M)):
+        for i in range(tq * _TILE_Q, min(nq, (tq + 1) * _TILE_Q)):
+            d, s = _pair(
+                qt[i], qm[i], qsr[i], qsi[i], qbr[i], qbi[i],
+                dt[j], dm[j], dsr[j], dsi[j], dbr[j], dbi[j],
+                cos_t, sin_t, cos_c, sin_c, window, mode, search, peaks, scratch,
+            )  # fmt: skip
+            out_d[i, j] = d
+            out_s[i, j] = s
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def pair_block(qt, qm, qsr, qsi, qbr, qbi, dt, dm, dsr, dsi, dbr, dbi, cos_t, sin_t, window,
                mode, search, peaks, out_d, out_s):
@@ -389,41 +425,28 @@ def pair_block(qt, qm, qsr, qsi, qbr, qbi, dt, dm, dsr, dsi, dbr, dbi, cos_t, si
     axes (threads take whole tiles); each pair is computed independently, so
     results do not depend on the block shape or the thread count.
     """
-    nq = qt.shape[0]
-    nd = dt.shape[0]
-    nk = cos_t.shape[0]
-    n = cos_t.shape[1]
-    tiles_q = (nq + _TILE_Q - 1) // _TILE_Q
-    tiles_d = (nd + _TILE_M - 1) // _TILE_M
-    ncand = max(n, 2 * (2 * window + 1 + peaks))
+    tiles_q = (qt.shape[0] + _TILE_Q - 1) // _TILE_Q
+    tiles_d = (dt.shape[0] + _TILE_M - 1) // _TILE_M
     cos_c = np.ascontiguousarray(cos_t[:, ::_COARSE_STEP])
     sin_c = np.ascontiguousarray(sin_t[:, ::_COARSE_STEP])
     for tile in nb.prange(tiles_q * tiles_d):
-        tq = tile // tiles_d
-        td = tile % tiles_d
-        scratch = (
-            np.empty(nk),
-            np.empty(nk),
-            np.empty(n),
-            np.empty(ncand, np.int64),
-            np.empty(ncand, np.int64),
-            np.empty(ncand, np.int64),
-            np.empty(ncand, np.int64),
-            np.empty(n, np.bool_),
-            np.empty(n),
-            np.empty(max(peaks, 1), np.int64),
-            np.empty(max(peaks, 1) * (2 * _COARSE_STEP - 1), np.int64),
-            np.empty(max(peaks, 1) * (2 * _COARSE_STEP - 1)),
-        )
-        for j in range(td * _TILE_M, min(nd, (td + 1) * _TILE_M)):
-            for i in range(tq * _TILE_Q, min(nq, (tq + 1) * _TILE_Q)):
-                d, s = _pair(
-                    qt[i], qm[i], qsr[i], qsi[i], qbr[i], qbi[i],
-                    dt[j], dm[j], dsr[j], dsi[j], dbr[j], dbi[j],
-                    cos_t, sin_t, cos_c, sin_c, window, mode, search, peaks, scratch,
-                )  # fmt: skip
-                out_d[i, j] = d
-                out_s[i, j] = s
+        _tile(qt, qm, qsr, qsi, qbr, qbi, dt, dm, dsr, dsi, dbr, dbi, cos_t, sin_t, cos_c,
+              sin_c, window, mode, search, peaks, out_d, out_s, tile, tiles_d)
+
+
+@nb.njit(cache=True, nogil=True)
+def pair_block_serial(qt, qm, qsr, qsi, qbr, qbi, dt, dm, dsr, dsi, dbr, dbi, cos_t, sin_t,
+                      window, mode, search, peaks, out_d, out_s):
+    """:func:`pair_block` on the calling thread: the same tiles and pair code, no parallel
+    launch (which waits for every numba thread to be scheduled; for a few pairs, on a
+    loaded machine, that wait cost more than the pairs)."""
+    tiles_q = (qt.shape[0] + _TILE_Q - 1) // _TILE_Q
+    tiles_d = (dt.shape[0] + _TILE_M - 1) // _TILE_M
+    cos_c = np.ascontiguousarray(cos_t[:, ::_COARSE_STEP])
+    sin_c = np.ascontiguousarray(sin_t[:, ::_COARSE_STEP])
+    for tile in range(tiles_q * tiles_d):
+        _tile(qt, qm, qsr, qsi, qbr, qbi, dt, dm, dsr, dsi, dbr, dbi, cos_t, sin_t, cos_c,
+              sin_c, window, mode, search, peaks, out_d, out_s, tile, tiles_d)
 
 
 @nb.njit(cache=True, nogil=True)

@@ -301,6 +301,9 @@ class ScanContext(Descriptor):
     params_type = ScanContextParams
     per_frame = True  # each scan's descriptor is computed from that scan alone
     symmetric = False
+    # blocks are single-threaded NumPy / BLAS / FFT calls on whole chunks (the GIL is
+    # released), and each pair's value does not depend on its block (kernels.py)
+    threaded_blocks = True
 
     def __init__(self, params: ScanContextParams | None = None, preset: str = "custom"):
         super().__init__(params, preset)
