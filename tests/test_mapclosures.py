@@ -231,3 +231,23 @@ def test_native_mode_with_kiss_icp_odometry_splits_maps_as_the_true_poses_do():
     assert np.abs(kiss_ranges - gt_ranges).max() <= 1
     with pytest.raises(LirisError, match="odometry"):
         NativeSettings(odometry="imu")
+
+
+# ------------------------------------------------------------------ fast paths
+def test_window_points_equal_the_matrix_route(revisit):
+    """The compiled transform-and-crop against ``pts @ R.T + t`` and a norm test."""
+    from lidar_iris_eval.descriptors.mapclosures.localmap import window_points
+
+    _, poses, feats = revisit
+    scans = [f["points"] for f in feats]
+    settings = LocalMapSettings(window=4, radius=20.0)
+    for i in (0, 5, 11):
+        parts = []
+        for j in range(max(0, i - 3), i + 1):
+            T = np.linalg.inv(poses[i]) @ poses[j]
+            p = np.asarray(scans[j], np.float64) @ T[:3, :3].T + T[:3, 3]
+            parts.append(p[np.hypot(p[:, 0], p[:, 1]) <= 20.0])
+        expected = np.vstack(parts)
+        got = window_points(scans, poses, i, settings)
+        assert got.shape == expected.shape and len(got) > 1000
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
