@@ -15,6 +15,7 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from lidar_iris_eval.cli import main
@@ -54,7 +55,12 @@ def _pinned(p1, p2) -> tuple:
 @pytest.mark.parametrize("preset", sorted(README_BEVPLACE))
 def test_bevplace_figures_equal_the_readme(bevplace_rows, preset):
     got = _pinned(bevplace_rows[(preset, 1)], bevplace_rows[(preset, 2)])
-    assert got == README_BEVPLACE[preset]
+    want = README_BEVPLACE[preset]
+    assert got[:4] + got[6:] == want[:4] + want[6:]
+    # the pose medians sit near a rounding edge: the same code printed 0.66 m on an
+    # AVX-512 machine and 0.67 m on an AVX2 one (2026-12-07), so one unit of the
+    # printed digit is allowed there
+    np.testing.assert_allclose(got[4:6], want[4:6], rtol=0, atol=0.0101)
 
 
 @pytest.mark.parametrize("preset", sorted(README_BEVPLACE))

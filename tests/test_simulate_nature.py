@@ -23,6 +23,11 @@ GOLDEN = {"forest": ("forest", dict(frames=6)),
           "forest-pushbroom": ("forest", dict(frames=20, azimuth_steps=64, pushbroom=3.0))}
 #: rewrite with ``python tests/test_simulate_nature.py`` only for an intended change
 GOLDEN_FILE = Path(__file__).parent / "data" / "simulate_golden_nature.npz"
+#: worlds whose points move with the CPU: the push-broom lines' grazing rays change
+#: with an ulp of NumPy's SIMD arithmetic (the golden file was written on an AVX-512
+#: machine; an AVX2 one keeps 0.3 % fewer points, 2026-12-07), so only the poses,
+#: times, calibration and point counts (within 1 %) are compared
+CPU_SENSITIVE = {"forest-pushbroom"}
 
 
 @pytest.mark.parametrize("name", sorted(GOLDEN))
@@ -31,10 +36,13 @@ def test_natural_world_output_is_unchanged(tmp_path, name):
     got = fingerprint(simulate_sequence(tmp_path / "seq", preset, **options))
     with np.load(GOLDEN_FILE) as golden:
         expected = {key: golden[f"{name}/{key}"] for key in got}
+    np.testing.assert_allclose(got["text"], expected["text"], rtol=1e-9, atol=1e-12)
+    if name in CPU_SENSITIVE:
+        np.testing.assert_allclose(got["counts"], expected["counts"], rtol=0.01)
+        return
     assert list(got["digests"]) == list(expected["digests"])
     np.testing.assert_array_equal(got["counts"], expected["counts"])
     np.testing.assert_allclose(got["sample"], expected["sample"], rtol=0, atol=1e-4)
-    np.testing.assert_allclose(got["text"], expected["text"], rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("world", ["forest", "park"])
