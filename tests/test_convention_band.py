@@ -175,7 +175,7 @@ def test_distributed_block_paths_give_the_same_band(seq):
     class BlockTasks(SerialExecutor):
         """Serial, but answers as a cluster does: block tasks return reductions only."""
 
-        def run_blocks(self, fn, tasks, shared=(), warm_up=None):
+        def run_blocks(self, fn, tasks, shared=(), warm_up=None, threaded=False):
             return self.imap(fn, tasks, shared)
 
         def returns_blocks(self):
