@@ -175,3 +175,11 @@ def pair_distances(queries: np.ndarray, database: np.ndarray, metric: str) -> np
         kernel = _pair_block if out.size >= PARALLEL_MIN_PAIRS else _pair_block_serial
         kernel(q, d, METRICS[metric], leaves, program, out)
     return out
+
+
+def pairwise_with_nan_yaws(queries: np.ndarray, database: np.ndarray, metric: str
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pair_distances` and all-nan yaws: ``Descriptor.pairwise``'s answer for
+    descriptors that estimate no yaw (as ``vector_common.pairwise_blocks`` returns)."""
+    dists = pair_distances(queries, database, metric)
+    return dists, np.full(dists.shape, np.nan)

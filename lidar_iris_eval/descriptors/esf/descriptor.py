@@ -66,7 +66,7 @@ import numpy as np
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.esf import kernels
 from lidar_iris_eval.descriptors.vector_common import finite_xyz
-from lidar_iris_eval.descriptors.vector_kernels import pair_distances
+from lidar_iris_eval.descriptors.vector_kernels import pairwise_with_nan_yaws
 from lidar_iris_eval.errors import LirisError
 
 GRID = 64
@@ -449,7 +449,5 @@ class ESF(Descriptor):
 
     def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(Q, M)`` L1 distances, each bitwise :func:`l1_rows`'s."""
-        # compiled, on every numba thread, bitwise :func:`l1_rows` (tests/test_vector_kernels.py)
-        queries, database = np.asarray(queries), np.asarray(database)
-        return pair_distances(queries, database, "l1"), np.full(
-            (len(queries), len(database)), np.nan)
+        # compiled, on every numba thread (tests/test_vector_kernels.py)
+        return pairwise_with_nan_yaws(queries, database, "l1")

@@ -73,7 +73,7 @@ import numpy as np
 from lidar_iris_eval.descriptors.base import Descriptor
 from lidar_iris_eval.descriptors.m2dp import kernels
 from lidar_iris_eval.descriptors.vector_common import finite_xyz
-from lidar_iris_eval.descriptors.vector_kernels import pair_distances
+from lidar_iris_eval.descriptors.vector_kernels import pairwise_with_nan_yaws
 from lidar_iris_eval.errors import LirisError
 
 _SVD_SIGNS = ("positive", "lapack")
@@ -393,7 +393,5 @@ class M2DP(Descriptor):
 
     def pairwise(self, queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(Q, M)`` L2 distances, each bitwise :func:`l2_rows`'s."""
-        # compiled, on every numba thread, bitwise :func:`l2_rows` (tests/test_vector_kernels.py)
-        queries, database = np.asarray(queries), np.asarray(database)
-        return pair_distances(queries, database, "l2"), np.full(
-            (len(queries), len(database)), np.nan)
+        # compiled, on every numba thread (tests/test_vector_kernels.py)
+        return pairwise_with_nan_yaws(queries, database, "l2")
